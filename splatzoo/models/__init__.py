@@ -1,0 +1,17 @@
+"""Built-in models, registered here by explicit import; plugins arrive through the registry's entry points."""
+from __future__ import annotations
+
+from ..registry import ModelSpec, register_model
+from .gabor import BaselineAConfig, BaselineBModel, BaselineCModel, GaborConfig, GaborModel
+from .surfel2d import Surfel2DConfig, Surfel2DModel
+
+register_model(ModelSpec("2dgs", Surfel2DModel, Surfel2DConfig,
+                         "2D Gaussian surfels, one colour each (optional spherical harmonics)"))
+register_model(ModelSpec("gabor", GaborModel, GaborConfig,
+                         "3D Gabor surfels: N wave orientations with learnable frequency, weight and phase"))
+register_model(ModelSpec("baseline-a", GaborModel, BaselineAConfig,
+                         "ablation A: Gabor surfels with a single wave"))
+register_model(ModelSpec("baseline-b", BaselineBModel, GaborConfig,
+                         "ablation B: N waves all along the local u axis"))
+register_model(ModelSpec("baseline-c", BaselineCModel, GaborConfig,
+                         "ablation C: Gabor surfels with phases fixed at zero"))

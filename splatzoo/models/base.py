@@ -1,0 +1,149 @@
+"""Base classes for primitive types. A model owns per-primitive parameters and maps them, for one camera,
+to the Surfels contract. Plugins subclass SurfelModel and register a ModelSpec."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..errors import ShapeError, SplatzooError
+from ..geometry import normals_to_quats
+from ..types import Camera, Surfels
+
+
+def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(1e-6, 1 - 1e-6)
+    return torch.log(x / (1 - x))
+
+
+def nearest_neighbour_distance(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
+    """Mean distance from each point to its k nearest other points [N] (chunked, O(N^2) but small memory)."""
+    n = points.shape[0]
+    if n < 2:
+        return points.new_ones(n)
+    k = min(k, n - 1)
+    out = []
+    for i in range(0, n, chunk):
+        d = torch.cdist(points[i:i + chunk], points)
+        d[torch.arange(d.shape[0]), torch.arange(i, i + d.shape[0])] = float("inf")
+        out.append(d.topk(k, largest=False).values.mean(1))
+    return torch.cat(out)
+
+
+class SplatModel(nn.Module):
+    """A primitive type. Subclasses define parameters in `__init__(config, num_primitives)` with first
+    dimension num_primitives, initialise them in `init_from_points`, and implement `surfels(camera)`."""
+
+    name: str = ""  # set from the registry spec when created through create_model
+
+    def __init__(self, config: Any, num_primitives: int = 0):
+        super().__init__()
+        if not dataclasses.is_dataclass(config):
+            raise TypeError(f"{type(self).__name__} expects a config dataclass, got {type(config).__name__}")
+        self.config = config
+
+    # --- the contract -------------------------------------------------------------------------------
+    def surfels(self, camera: Camera) -> Surfels:
+        raise NotImplementedError
+
+    def init_from_points(self, points: torch.Tensor, colors: torch.Tensor, generator: torch.Generator) -> None:
+        raise NotImplementedError
+
+    def optim_groups(self, scene_extent: float) -> list[dict]:
+        """Adam parameter groups: dicts with "name", "params" and "lr". The group named "means" gets the
+        exponential position schedule."""
+        raise NotImplementedError
+
+    # --- generic helpers ----------------------------------------------------------------------------
+    @property
+    def num_primitives(self) -> int:
+        return next(iter(self.per_primitive().values())).shape[0]
+
+    def per_primitive(self) -> dict[str, nn.Parameter]:
+        """Trainable tensors whose first dimension indexes primitives (what densification edits)."""
+        return dict(self.named_parameters())
+
+    def replace_parameters(self, new: dict[str, torch.Tensor]) -> None:
+        """Swap per-primitive parameters for tensors with a new primitive count (densify, load)."""
+        for name, value in new.items():
+            setattr(self, name, nn.Parameter(value.detach().clone().requires_grad_(True)))
+
+    def size_bytes(self) -> int:
+        """Bytes of stored parameters (float32)."""
+        return sum(p.numel() for p in self.parameters()) * 4
+
+    @classmethod
+    def from_points(cls, config, points: torch.Tensor, colors: torch.Tensor, *, seed: int = 0) -> "SplatModel":
+        points = torch.as_tensor(points, dtype=torch.float32)
+        colors = torch.as_tensor(colors, dtype=torch.float32)
+        if points.dim() != 2 or points.shape[1] != 3:
+            raise ShapeError(f"points must be [N,3], got {list(points.shape)}")
+        if colors.shape != points.shape:
+            raise ShapeError(f"colors must be [N,3] like points {list(points.shape)}, got {list(colors.shape)}")
+        if not (torch.isfinite(points).all() and torch.isfinite(colors).all()):
+            raise ShapeError("points and colors must be finite (no NaN or Inf)")
+        if colors.numel() and colors.max() > 1.0 + 1e-6:
+            colors = colors / 255.0  # uint8-range colours
+        model = cls(config, points.shape[0])
+        gen = torch.Generator().manual_seed(seed)
+        with torch.no_grad():
+            model.init_from_points(points, colors.clamp(0, 1), gen)
+        return model
+
+    def checkpoint(self) -> dict:
+        return {"model": self.name, "config": dataclasses.asdict(self.config),
+                "state": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
+
+
+class SurfelModel(SplatModel):
+    """2D Gaussian surfel geometry shared by every built-in model: position, two scales, rotation, opacity.
+
+    Parameters are stored unconstrained: scales as log sigma, opacity as a logit, rotation as an
+    unnormalised quaternion.
+    """
+
+    def __init__(self, config, num_primitives: int = 0):
+        super().__init__(config, num_primitives)
+        n = num_primitives
+        self.means = nn.Parameter(torch.zeros(n, 3))
+        self.log_scales = nn.Parameter(torch.zeros(n, 2))
+        self.quats = nn.Parameter(torch.zeros(n, 4).index_fill_(1, torch.tensor([0]), 1.0))
+        self.logit_opacity = nn.Parameter(torch.zeros(n))
+
+    def init_geometry(self, points: torch.Tensor, generator: torch.Generator, *, initial_opacity: float = 0.1,
+                      normals: torch.Tensor | None = None) -> None:
+        """2DGS initialisation: scale from the nearest-neighbour distance, random rotation, opacity 0.1."""
+        dist = nearest_neighbour_distance(points).clamp_min(1e-7)
+        self.means.copy_(points)
+        self.log_scales.copy_(torch.log(dist)[:, None].expand(-1, 2))
+        if normals is not None:
+            self.quats.copy_(normals_to_quats(normals))
+        else:
+            self.quats.copy_(torch.rand(points.shape[0], 4, generator=generator))
+        self.logit_opacity.fill_(math.log(initial_opacity / (1 - initial_opacity)))
+
+    def geometry(self) -> dict[str, torch.Tensor]:
+        """Surfels geometry fields in activated form."""
+        return {"means": self.means, "quats": self.quats, "scales": torch.exp(self.log_scales),
+                "opacities": torch.sigmoid(self.logit_opacity)}
+
+    def geometry_groups(self, scene_extent: float) -> list[dict]:
+        return [
+            {"name": "means", "params": [self.means], "lr": 1.6e-4 * scene_extent},
+            {"name": "log_scales", "params": [self.log_scales], "lr": 5e-3},
+            {"name": "quats", "params": [self.quats], "lr": 1e-3},
+            {"name": "logit_opacity", "params": [self.logit_opacity], "lr": 0.05},
+        ]
+
+
+def view_directions(means: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """Unit directions from the camera centre to each mean [N,3]."""
+    d = means - camera.center.to(means)
+    return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+class ModelOptionError(SplatzooError, TypeError):
+    """Model options that do not match the model's config fields."""

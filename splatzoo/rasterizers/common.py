@@ -1,0 +1,116 @@
+"""Constants and per-surfel set-up shared by every rasterizer backend.
+
+The same numbers are written in csrc/surfel_math.h; tests/test_native.py checks the two agree.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..geometry import quat_to_rotmat
+from ..types import Camera, Surfels
+
+NEAR = 0.2            # hits closer than this camera depth are culled (official 2DGS)
+FAR = 100.0           # far plane of the NDC depth used by the distortion term
+ALPHA_MAX = 0.99      # alpha clamp
+ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
+T_MIN = 1e-4          # stop before a contribution that would bring transmittance below this
+FILTER_INV_SQ = 2.0   # screen-space low-pass filter: rho2d = FILTER_INV_SQ * |pixel - centre|^2
+TILE = 16             # tile size of the native tile rasterizers
+
+
+@dataclass
+class Projected:
+    """Per-surfel quantities for one camera (autograd flows through all but the boxes).
+
+    T [N,3,3]: rows m1, m2, m3 of M = K [R s_u t_u | R s_v t_v | R p + t];
+    center_px [N,2] projected mean; depth [N] camera depth of the mean; normal [N,3] world normal facing the camera;
+    boxes [N,4] (xmin, ymin, xmax, ymax) in pixel units covering every pixel centre the surfel can touch;
+    visible [N] bool.
+    """
+
+    T: torch.Tensor
+    center_px: torch.Tensor
+    depth: torch.Tensor
+    normal: torch.Tensor
+    boxes: torch.Tensor
+    visible: torch.Tensor
+
+
+def project(s: Surfels, cam: Camera) -> Projected:
+    R = quat_to_rotmat(s.quats)
+    tu, tv, tw = R[..., 0], R[..., 1], R[..., 2]
+    KR = cam.K @ cam.R
+    a = (s.scales[:, :1] * tu) @ KR.T
+    b = (s.scales[:, 1:2] * tv) @ KR.T
+    c = s.means @ KR.T + cam.K @ cam.t
+    T = torch.stack([a, b, c], dim=-1)  # columns a, b, c -> T[:, i, :] is row m_{i+1}
+    depth = c[:, 2]
+    center_px = c[:, :2] / torch.where(depth.abs() > 1e-12, depth, torch.ones_like(depth))[:, None]
+    view = s.means - cam.center
+    facing = ((tw * view).sum(-1, keepdim=True) > 0).to(tw.dtype)
+    normal = tw * (1 - 2 * facing)
+    boxes, visible = screen_boxes(T.detach(), center_px.detach(), depth.detach(), s.opacities.detach(), cam)
+    return Projected(T, center_px, depth, normal, boxes, visible)
+
+
+@torch.no_grad()
+def screen_boxes(T, center_px, depth, opacities, cam: Camera):
+    """Exact screen bounds of each surfel's support.
+
+    A contribution is skipped when o exp(-rho/2) < 1/255, so the support is the disc u^2+v^2 <= r^2 with
+    r^2 = 2 ln(255 o), together with the filter disc |d|^2 <= ln(255 o) / (FILTER_INV_SQ / 2) around the
+    projected centre. Bounding both exactly means the boxes only save work and never change a pixel.
+    The disc's image is a conic; if the disc reaches the camera plane it is unbounded and we use the
+    whole image.
+    """
+    n = T.shape[0]
+    log_o = torch.log((opacities.clamp(0, 1) * 255.0).clamp_min(1e-30))
+    visible = (depth > NEAR) & (log_o > 0)
+    r2 = (2 * log_o).clamp_min(0)
+    # Dual conic Q = T diag(r^2, r^2, -1) T^T; the vertical tangent lines x solve Q00 - 2x Q02 + x^2 Q22 = 0.
+    D = torch.stack([r2, r2, -torch.ones_like(r2)], -1)
+    Q = torch.einsum("nik,nk,njk->nij", T, D, T)
+    q22 = Q[:, 2, 2]
+    bounded = q22 < 0  # disc entirely in front of the camera plane
+    safe = torch.where(bounded, q22, -torch.ones_like(q22))
+    cx, cy = Q[:, 0, 2] / safe, Q[:, 1, 2] / safe
+    hx = torch.sqrt((Q[:, 0, 2] ** 2 - Q[:, 0, 0] * q22).clamp_min(0)) / safe.abs()
+    hy = torch.sqrt((Q[:, 1, 2] ** 2 - Q[:, 1, 1] * q22).clamp_min(0)) / safe.abs()
+    big = float(max(cam.width, cam.height)) * 4 + 1e4
+    inf_box = torch.tensor([-big, -big, big, big], dtype=T.dtype, device=T.device).expand(n, 4)
+    disc = torch.stack([cx - hx, cy - hy, cx + hx, cy + hy], -1)
+    disc = torch.where(bounded[:, None], disc, inf_box)
+    rf = torch.sqrt(log_o.clamp_min(0) / (FILTER_INV_SQ / 2))
+    filt = torch.cat([center_px - rf[:, None], center_px + rf[:, None]], -1)
+    boxes = torch.cat([torch.minimum(disc[:, :2], filt[:, :2]), torch.maximum(disc[:, 2:], filt[:, 2:])], -1)
+    boxes = torch.nan_to_num(boxes, nan=0.0, posinf=big, neginf=-big).clamp(-big, big)
+    # slack for rounding: a box is a cull test, never a cut
+    pad = 1e-3 * (1 + boxes.abs())
+    boxes = boxes + torch.cat([-pad[:, :2], pad[:, 2:]], -1)
+    on_screen = (boxes[:, 2] >= 0.5) & (boxes[:, 0] <= cam.width - 0.5) & (boxes[:, 3] >= 0.5) & (boxes[:, 1] <= cam.height - 0.5)
+    return boxes, visible & on_screen
+
+
+def ndc_depth(z: torch.Tensor) -> torch.Tensor:
+    """The distortion term's depth map m(z) = f/(f-n) (1 - n/z)."""
+    return FAR / (FAR - NEAR) * (1 - NEAR / z)
+
+
+def background_tensor(background, like: torch.Tensor) -> torch.Tensor:
+    if background is None:
+        return like.new_zeros(3)
+    bg = torch.as_tensor(background, dtype=like.dtype, device=like.device).reshape(-1)
+    if bg.numel() == 1:
+        bg = bg.expand(3)
+    if bg.numel() != 3:
+        from ..errors import ShapeError
+        raise ShapeError(f"background must be a colour of 3 values (or one grey value), got {bg.numel()} values")
+    return bg
+
+
+def max_support_radius_sigma() -> float:
+    """Largest support radius in sigmas (opacity 1): sqrt(2 ln 255) ~ 3.33."""
+    return math.sqrt(2 * math.log(255.0))

@@ -1,0 +1,146 @@
+"""The reference rasterizer: plain PyTorch, differentiable by autograd, CPU or GPU.
+
+It is the oracle the native backends are tested against, so it favours clarity over speed. Work is split into
+screen rectangles small enough that (pixels x overlapping surfels) stays under a memory budget; each rectangle
+evaluates every (pixel, surfel) pair densely and composites with a cumulative product.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..types import Camera, RenderOutput, Surfels
+from .common import ALPHA_MAX, ALPHA_MIN, FILTER_INV_SQ, NEAR, T_MIN, Projected, background_tensor, ndc_depth, project
+
+# (pixel, surfel, wave) triples evaluated at once; bounds memory with autograd to a few hundred MB.
+PAIR_BUDGET = 1 << 19
+# A ray meeting the surfel plane at |(u, v)| > 1e6 sigma is treated as missing it (avoids overflow).
+PARALLEL_EPS = 1e-6
+
+
+def rasterize_reference(surfels: Surfels, camera: Camera, background=None, *, pair_budget: int = PAIR_BUDGET) -> RenderOutput:
+    s = surfels
+    dtype, device = s.means.dtype, s.means.device
+    cam = camera.to(device, dtype)
+    H, W = cam.height, cam.width
+    bg = background_tensor(background, s.means)
+    out = {
+        "rgb": s.means.new_zeros(H, W, 3), "alpha": s.means.new_zeros(H, W), "depth": s.means.new_zeros(H, W),
+        "median_depth": s.means.new_zeros(H, W), "normal": s.means.new_zeros(H, W, 3),
+        "distortion": s.means.new_zeros(H, W),
+    }
+    proj = project(s, cam) if s.num else None
+    if proj is None or not bool(proj.visible.any()):
+        return _finish(out, bg)
+    order = _depth_order(proj)
+    boxes = proj.boxes[order]
+    pieces = []  # (x0, x1, y0, y1, dict of [h,w,...] tensors)
+    stack = [(0, W, 0, H, order, boxes)]
+    waves = max(1, s.num_waves)
+    while stack:
+        x0, x1, y0, y1, idx, bx = stack.pop()
+        keep = (bx[:, 2] >= x0 + 0.5) & (bx[:, 0] <= x1 - 0.5) & (bx[:, 3] >= y0 + 0.5) & (bx[:, 1] <= y1 - 0.5)
+        idx, bx = idx[keep], bx[keep]
+        if idx.numel() == 0:
+            continue
+        area = (x1 - x0) * (y1 - y0)
+        if area * idx.numel() * waves > pair_budget and area > 1:
+            if x1 - x0 >= y1 - y0:
+                xm = (x0 + x1) // 2
+                stack += [(x0, xm, y0, y1, idx, bx), (xm, x1, y0, y1, idx, bx)]
+            else:
+                ym = (y0 + y1) // 2
+                stack += [(x0, x1, y0, ym, idx, bx), (x0, x1, ym, y1, idx, bx)]
+            continue
+        pieces.append((x0, x1, y0, y1, _shade_rect(s, proj, idx, x0, x1, y0, y1)))
+    # assemble without in-place writes into tensors autograd needs: pad each piece to full size and sum
+    for key in out:
+        acc = out[key]
+        for x0, x1, y0, y1, vals in pieces:
+            v = vals[key]
+            pad = [0, 0] * (v.dim() - 2) + [x0, W - x1, y0, H - y1]
+            acc = acc + torch.nn.functional.pad(v, pad)
+        out[key] = acc
+    return _finish(out, bg)
+
+
+def _finish(out: dict, bg: torch.Tensor) -> RenderOutput:
+    out["rgb"] = out["rgb"] + (1 - out["alpha"])[..., None] * bg
+    return RenderOutput(**out)
+
+
+def _depth_order(proj: Projected) -> torch.Tensor:
+    """Visible surfels sorted front to back by the camera depth of their centre (ties by index)."""
+    vis = torch.nonzero(proj.visible).squeeze(1)
+    d = proj.depth.detach()[vis]
+    # stable sort keeps index order among equal depths, as the native backends do
+    return vis[torch.sort(d, stable=True).indices]
+
+
+def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int, y0: int, y1: int) -> dict:
+    """Composite surfels `idx` (front to back) over the pixels of one rectangle; values before background."""
+    dtype, device = s.means.dtype, s.means.device
+    h, w = y1 - y0, x1 - x0
+    ys, xs = torch.meshgrid(torch.arange(y0, y1, device=device, dtype=dtype) + 0.5,
+                            torch.arange(x0, x1, device=device, dtype=dtype) + 0.5, indexing="ij")
+    px, py = xs.reshape(-1, 1), ys.reshape(-1, 1)  # [P,1]
+    T = proj.T[idx]  # [n,3,3]
+    m1, m2, m3 = T[:, 0], T[:, 1], T[:, 2]  # [n,3]
+    # ray-splat intersection: (u, v) from the cross product of the two planes through the pixel
+    hx = px[..., None] * m3 - m1  # [P,n,3]
+    hy = py[..., None] * m3 - m2
+    cr = torch.linalg.cross(hx, hy)
+    cz = cr[..., 2]
+    hits = (cz.abs() > PARALLEL_EPS * torch.maximum(cr[..., 0].abs(), cr[..., 1].abs())) & (cz != 0)
+    cz_safe = torch.where(hits, cz, torch.ones_like(cz))
+    u = torch.where(hits, cr[..., 0] / cz_safe, torch.zeros_like(cz))
+    v = torch.where(hits, cr[..., 1] / cz_safe, torch.zeros_like(cz))
+    rho3d = u * u + v * v
+    d = torch.stack([px - proj.center_px[idx, 0], py - proj.center_px[idx, 1]], -1)  # [P,n,2]
+    rho2d = FILTER_INV_SQ * (d * d).sum(-1)
+    use3d = hits & (rho3d <= rho2d)
+    rho = torch.where(use3d, rho3d, rho2d)
+    # where the screen filter wins, the surfel is seen as its centre (depth and colour at u = v = 0)
+    u = torch.where(use3d, u, torch.zeros_like(u))
+    v = torch.where(use3d, v, torch.zeros_like(v))
+    z = torch.where(use3d, m3[:, 0] * u + m3[:, 1] * v + m3[:, 2], proj.depth[idx].expand_as(u))
+    alpha = torch.clamp(s.opacities[idx] * torch.exp(-0.5 * rho), max=ALPHA_MAX)
+    valid = (alpha >= ALPHA_MIN) & (z >= NEAR)
+    alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
+    # front-to-back compositing; a prefix of the surfels is kept until T would fall below T_MIN
+    T_after = torch.cumprod(1 - alpha, dim=1)
+    T_before = torch.cat([torch.ones_like(T_after[:, :1]), T_after[:, :-1]], dim=1)
+    kept = T_after >= T_MIN
+    weight = torch.where(kept, alpha * T_before, torch.zeros_like(alpha))  # [P,n]
+    T_final = torch.prod(torch.where(kept, 1 - alpha, torch.ones_like(alpha)), dim=1)
+    color = _wave_color(s, idx, u, v)  # [P,n,3]
+    rgb = (weight[..., None] * color).sum(1)
+    acc = 1 - T_final
+    z_safe = torch.where(valid, z, torch.ones_like(z))
+    depth_sum = (weight * z_safe).sum(1)
+    depth = torch.where(acc > 0, depth_sum / torch.where(acc > 0, acc, torch.ones_like(acc)), torch.zeros_like(acc))
+    normal = weight @ proj.normal[idx]
+    # median depth: the last kept contribution that starts while T > 0.5 (official 2DGS rule)
+    mask = kept & valid & (T_before > 0.5)
+    pos = torch.arange(1, mask.shape[1] + 1, device=device)
+    last = (mask * pos).argmax(1)
+    median = torch.where(mask.any(1), z_safe.gather(1, last[:, None]).squeeze(1), torch.zeros_like(acc))
+    # distortion: sum_i w_i sum_{j<i} w_j (m_i - m_j)^2 from exclusive running sums
+    m = ndc_depth(z_safe)
+    A = torch.cumsum(weight, 1) - weight
+    M1 = torch.cumsum(weight * m, 1) - weight * m
+    M2 = torch.cumsum(weight * m * m, 1) - weight * m * m
+    distortion = (weight * (m * m * A + M2 - 2 * m * M1)).sum(1)
+    return {"rgb": rgb.reshape(h, w, 3), "alpha": acc.reshape(h, w), "depth": depth.reshape(h, w),
+            "median_depth": median.reshape(h, w), "normal": normal.reshape(h, w, 3),
+            "distortion": distortion.reshape(h, w)}
+
+
+def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """c(u, v) = max(0, c0 + sum_k a_k cos(k_k . (u, v) + phi_k)) for every pair -> [P,n,3]."""
+    base = s.base_color[idx]  # [n,3]
+    if s.num_waves == 0:
+        return torch.clamp(base.expand(u.shape[0], -1, -1), min=0)
+    k = s.wave_vectors[idx]  # [n,K,2]
+    phase = u[..., None] * k[:, :, 0] + v[..., None] * k[:, :, 1] + s.wave_phases[idx]  # [P,n,K]
+    color = base + torch.einsum("pnk,nkc->pnc", torch.cos(phase), s.wave_amplitudes[idx])
+    return torch.clamp(color, min=0)

@@ -1,0 +1,148 @@
+"""Name -> spec registries, with third-party entries discovered lazily from entry points."""
+from __future__ import annotations
+
+import difflib
+import importlib
+import importlib.metadata
+from dataclasses import dataclass, field
+from typing import Any, Callable, Generic, Iterable, TypeVar
+
+from .errors import DuplicateNameError, PluginError, UnknownNameError
+
+API_VERSION = 1  # bump when the model contract changes incompatibly
+
+S = TypeVar("S")
+
+
+def closest(name: str, known: Iterable[str]) -> str:
+    """A ' Did you mean X?' suffix, or ''."""
+    match = difflib.get_close_matches(str(name), list(known), n=1, cutoff=0.5)
+    return f". Did you mean {match[0]!r}?" if match else ""
+
+
+@dataclass
+class Entry(Generic[S]):
+    name: str
+    origin: str            # "built-in" or "plugin (<distribution>)"
+    spec: S | None = None  # None until a plugin is loaded
+    error: str = ""        # why a plugin failed to load
+    loader: Callable[[], S] | None = None
+
+    @property
+    def broken(self) -> bool:
+        return bool(self.error)
+
+
+class Registry(Generic[S]):
+    """Specs by name. Built-ins register explicitly; plugins come from an entry-point group, imported only
+    when first asked for, so a broken plugin breaks nothing but itself."""
+
+    def __init__(self, kind: str, entry_point_group: str | None = None,
+                 builtins_module: str | None = None, validate: Callable[[Any, str], S] | None = None):
+        self.kind = kind
+        self.group = entry_point_group
+        self.builtins_module = builtins_module
+        self.validate = validate
+        self._entries: dict[str, Entry[S]] = {}
+        self._discovered = False
+
+    def register(self, name: str, spec: S, origin: str = "built-in") -> S:
+        if name in self._entries:
+            raise DuplicateNameError(f"{self.kind} {name!r} is registered twice "
+                                     f"({self._entries[name].origin} and {origin}); rename one of them")
+        self._entries[name] = Entry(name, origin, spec)
+        return spec
+
+    def _discover(self) -> None:
+        if self._discovered:
+            return
+        self._discovered = True
+        if self.builtins_module:
+            importlib.import_module(self.builtins_module)
+        if not self.group:
+            return
+        for ep in importlib.metadata.entry_points(group=self.group):
+            dist = getattr(ep, "dist", None)
+            origin = f"plugin ({dist.name})" if dist is not None else "plugin"
+            if ep.name in self._entries:
+                existing = self._entries[ep.name]
+                # the same distribution seen twice on sys.path is not a conflict
+                if existing.origin == origin:
+                    continue
+                self._entries[ep.name] = Entry(ep.name, origin, error=(
+                    f"name clashes with the {existing.origin} {self.kind} {ep.name!r}; "
+                    f"the plugin must use another name"))
+                if existing.origin == "built-in":  # the built-in keeps its name
+                    self._entries[ep.name] = existing
+                continue
+            self._entries[ep.name] = Entry(ep.name, origin, loader=ep.load)
+
+    def _load(self, entry: Entry[S]) -> Entry[S]:
+        if entry.spec is None and not entry.error and entry.loader is not None:
+            try:
+                obj = entry.loader()
+                entry.spec = self.validate(obj, entry.name) if self.validate else obj
+            except Exception as e:  # a plugin can fail in any way; keep the reason to show the user
+                entry.error = f"{type(e).__name__}: {e}"
+        return entry
+
+    def names(self) -> list[str]:
+        """Every known name, plugins included, without importing plugins."""
+        self._discover()
+        return sorted(self._entries)
+
+    def entries(self) -> list[Entry[S]]:
+        """Every entry with plugins loaded (broken ones carry their error)."""
+        self._discover()
+        return [self._load(self._entries[n]) for n in sorted(self._entries)]
+
+    def get(self, name: str) -> S:
+        self._discover()
+        if name not in self._entries:
+            raise UnknownNameError(f"unknown {self.kind} {name!r}; known: {', '.join(sorted(self._entries))}"
+                                   + closest(name, self._entries))
+        entry = self._load(self._entries[name])
+        if entry.broken:
+            raise PluginError(f"{self.kind} {name!r} from {entry.origin} is broken: {entry.error}. "
+                              f"Reinstall or fix that plugin; other {self.kind}s still work.")
+        return entry.spec  # type: ignore[return-value]
+
+    def __contains__(self, name: str) -> bool:
+        self._discover()
+        return name in self._entries
+
+
+@dataclass
+class ModelSpec:
+    """What a model type declares: the plugin contract (api_version guards against stale plugins).
+
+    cls: a splatzoo.models.base.SplatModel subclass; config_cls: a dataclass of options with defaults.
+    """
+
+    name: str
+    cls: type
+    config_cls: type
+    description: str = ""
+    api_version: int = API_VERSION
+    extra: dict = field(default_factory=dict)
+
+
+def _validate_model_spec(obj: Any, name: str) -> ModelSpec:
+    if callable(obj) and not isinstance(obj, (ModelSpec, type)):
+        obj = obj()
+    if not isinstance(obj, ModelSpec):
+        raise PluginError(f"entry point must name a splatzoo.ModelSpec, got {type(obj).__name__}")
+    if obj.api_version != API_VERSION:
+        raise PluginError(f"plugin targets splatzoo model API {obj.api_version}, this splatzoo has {API_VERSION}")
+    if obj.name != name:
+        raise PluginError(f"entry point name {name!r} differs from the spec's name {obj.name!r}")
+    return obj
+
+
+MODELS: Registry[ModelSpec] = Registry("model", entry_point_group="splatzoo.models",
+                                       builtins_module="splatzoo.models", validate=_validate_model_spec)
+
+
+def register_model(spec: ModelSpec) -> ModelSpec:
+    """Register a built-in (or programmatic) model spec."""
+    return MODELS.register(spec.name, spec)

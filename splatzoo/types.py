@@ -1,0 +1,191 @@
+"""The data contract shared by every layer: Camera, Surfels and RenderOutput.
+
+Conventions (see README "Conventions"):
+- cameras use OpenCV axes: +x right, +y down, +z forward; pixel (i, j) has its centre at (i + 0.5, j + 0.5);
+- a surfel is a 2D Gaussian disc: P(u, v) = mean + scale_u * t_u * u + scale_v * t_v * v, with t_u, t_v the first
+  two columns of the rotation of the (w, x, y, z) quaternion, so (u, v) are measured in sigmas;
+- its colour at (u, v) is max(0, base_color + sum_k amplitude_k * cos(wave_vector_k . (u, v) + phase_k)).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+
+from .errors import ShapeError
+
+
+@dataclass
+class Camera:
+    """A pinhole camera. world_to_camera [4,4] (OpenCV axes), K [3,3] in pixels."""
+
+    world_to_camera: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        self.world_to_camera = torch.as_tensor(self.world_to_camera)
+        self.K = torch.as_tensor(self.K)
+        if not self.world_to_camera.is_floating_point():
+            self.world_to_camera = self.world_to_camera.double()
+        self.K = self.K.to(self.world_to_camera.dtype)
+        if tuple(self.world_to_camera.shape) != (4, 4):
+            raise ShapeError(f"Camera {self.name!r}: world_to_camera must be [4,4], got {list(self.world_to_camera.shape)}")
+        if tuple(self.K.shape) != (3, 3):
+            raise ShapeError(f"Camera {self.name!r}: K must be [3,3], got {list(self.K.shape)}")
+        self.width, self.height = int(self.width), int(self.height)
+        if self.width < 1 or self.height < 1:
+            raise ShapeError(f"Camera {self.name!r}: image size must be at least 1x1, got {self.width}x{self.height}")
+        if not (torch.isfinite(self.world_to_camera).all() and torch.isfinite(self.K).all()):
+            raise ShapeError(f"Camera {self.name!r}: world_to_camera and K must be finite")
+
+    @property
+    def R(self) -> torch.Tensor:
+        """World-to-camera rotation [3,3]."""
+        return self.world_to_camera[:3, :3]
+
+    @property
+    def t(self) -> torch.Tensor:
+        """World-to-camera translation [3]."""
+        return self.world_to_camera[:3, 3]
+
+    @property
+    def center(self) -> torch.Tensor:
+        """Camera centre in world coordinates [3]."""
+        return -self.R.T @ self.t
+
+    @property
+    def camera_to_world(self) -> torch.Tensor:
+        return torch.linalg.inv(self.world_to_camera)
+
+    def to(self, device=None, dtype=None) -> "Camera":
+        return replace(self, world_to_camera=self.world_to_camera.to(device=device, dtype=dtype),
+                       K=self.K.to(device=device, dtype=dtype))
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera for an image resized by `factor` (e.g. 0.5 halves width and height)."""
+        w, h = max(1, round(self.width * factor)), max(1, round(self.height * factor))
+        K = self.K.clone()
+        K[0] *= w / self.width
+        K[1] *= h / self.height
+        return replace(self, K=K, width=w, height=h)
+
+    @staticmethod
+    def look_at(eye, target, up=(0.0, -1.0, 0.0), *, fov_deg: float = 60.0, width: int = 64, height: int = 64,
+                name: str = "", dtype=torch.float64) -> "Camera":
+        """A camera at `eye` looking at `target`; `up` is the world direction that appears up in the image."""
+        eye = torch.as_tensor(eye, dtype=dtype)
+        target = torch.as_tensor(target, dtype=dtype)
+        up = torch.as_tensor(up, dtype=dtype)
+        z = target - eye
+        z = z / z.norm()
+        x = torch.linalg.cross(z, -up)
+        if x.norm() < 1e-9:  # looking along `up`: any perpendicular will do
+            x = torch.linalg.cross(z, torch.tensor([1.0, 0.0, 0.0], dtype=dtype))
+            if x.norm() < 1e-9:
+                x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0], dtype=dtype))
+        x = x / x.norm()
+        y = torch.linalg.cross(z, x)
+        R = torch.stack([x, y, z])  # rows: camera axes in world coordinates
+        w2c = torch.eye(4, dtype=dtype)
+        w2c[:3, :3] = R
+        w2c[:3, 3] = -R @ eye
+        f = 0.5 * width / torch.tan(torch.deg2rad(torch.tensor(fov_deg, dtype=dtype)) / 2)
+        K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=dtype)
+        return Camera(w2c, K, width, height, name)
+
+
+@dataclass
+class Surfels:
+    """A batch of N surfels with K waves each, ready to rasterize for one camera.
+
+    means [N,3], quats [N,4] (w,x,y,z; need not be normalised), scales [N,2] (linear sigma along u, v),
+    opacities [N] in [0,1], base_color [N,3] (view-evaluated), wave_vectors [N,K,2] (radians per sigma),
+    wave_phases [N,K] (radians), wave_amplitudes [N,K,3].
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    base_color: torch.Tensor
+    wave_vectors: torch.Tensor
+    wave_phases: torch.Tensor
+    wave_amplitudes: torch.Tensor
+
+    @property
+    def num(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def num_waves(self) -> int:
+        return self.wave_vectors.shape[1]
+
+    @staticmethod
+    def empty(num_waves: int = 0, *, device=None, dtype=torch.float32) -> "Surfels":
+        z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
+        return Surfels(z(0, 3), z(0, 4), z(0, 2), z(0), z(0, 3), z(0, num_waves, 2), z(0, num_waves), z(0, num_waves, 3))
+
+    @staticmethod
+    def constant_color(means, quats, scales, opacities, colors) -> "Surfels":
+        """2DGS surfels: K = 0, colour constant over each disc."""
+        n = means.shape[0]
+        e = means.new_zeros
+        return Surfels(means, quats, scales, opacities, colors, e(n, 0, 2), e(n, 0), e(n, 0, 3))
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def map(self, fn) -> "Surfels":
+        return Surfels(**{k: fn(v) for k, v in self.tensors().items()})
+
+    def to(self, device=None, dtype=None) -> "Surfels":
+        return self.map(lambda t: t.to(device=device, dtype=dtype))
+
+    def index(self, idx) -> "Surfels":
+        return self.map(lambda t: t[idx])
+
+    def validate(self) -> "Surfels":
+        """Check shapes, dtypes and finiteness; raise ShapeError naming the field."""
+        t = self.tensors()
+        n = self.means.shape[0] if self.means.dim() == 2 else -1
+        k = self.wave_vectors.shape[1] if self.wave_vectors.dim() == 3 else -1
+        expected = {"means": (n, 3), "quats": (n, 4), "scales": (n, 2), "opacities": (n,), "base_color": (n, 3),
+                    "wave_vectors": (n, k, 2), "wave_phases": (n, k), "wave_amplitudes": (n, k, 3)}
+        dtype, device = self.means.dtype, self.means.device
+        for name, shape in expected.items():
+            v = t[name]
+            if not isinstance(v, torch.Tensor):
+                raise ShapeError(f"Surfels.{name} must be a torch.Tensor, got {type(v).__name__}")
+            if n < 0 or k < 0 or tuple(v.shape) != shape:
+                want = "[" + ",".join("N" if s == n and i == 0 else ("K" if s == k and i == 1 and name.startswith("wave")
+                                      else str(s)) for i, s in enumerate(shape)) + "]"
+                raise ShapeError(f"Surfels.{name} must have shape {want} (N={n}, K={k}), got {list(v.shape)}")
+            if not v.is_floating_point() or v.dtype != dtype or v.device != device:
+                raise ShapeError(f"Surfels.{name} is {v.dtype} on {v.device}; every field must be {dtype} on {device}")
+            if not torch.isfinite(v).all():
+                raise ShapeError(f"Surfels.{name} contains NaN or Inf values; check the model parameters that produced it")
+        return self
+
+
+@dataclass
+class RenderOutput:
+    """What a rasterizer returns for one camera.
+
+    rgb [H,W,3]; alpha [H,W] = 1 - final transmittance; depth [H,W] expected camera depth of the surface
+    (sum w z / sum w; 0 where nothing is hit); median_depth [H,W] (depth where transmittance crosses 0.5);
+    normal [H,W,3] world-space, weighted sum of surfel normals that face the camera; distortion [H,W] the
+    2DGS depth-distortion term sum_{j<i} w_i w_j (m_i - m_j)^2 on NDC depth m.
+    """
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    median_depth: torch.Tensor
+    normal: torch.Tensor
+    distortion: torch.Tensor
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
