@@ -1,0 +1,339 @@
+"""COLMAP datasets: images/ + sparse/0/ (binary or text), read with pycolmap.
+
+PINHOLE and SIMPLE_PINHOLE cameras load directly. Any other model (SIMPLE_RADIAL, OPENCV, fisheye, ...) is
+undistorted once with pycolmap into DATA/undistorted/ (images, masks and a PINHOLE model) and that copy is
+used from then on; it is rebuilt when the sparse model changes.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import DataError
+from ..types import Camera
+from .scene import (Scene, View, camera_extent, find_mask, image_has_alpha, image_size, list_images,
+                    mesh_path_of, scale_camera, split_views, target_scale)
+
+PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+MODEL_FILES = ("cameras", "images", "points3D")
+UNDISTORTED_DIR = "undistorted"
+
+
+def find_sparse_dir(root: Path) -> Path | None:
+    """sparse/0/, sparse/ or the folder itself, whichever holds cameras.bin or cameras.txt."""
+    for cand in (root / "sparse" / "0", root / "sparse", root):
+        if (cand / "cameras.bin").is_file() or (cand / "cameras.txt").is_file():
+            return cand
+    return None
+
+
+def read_model(sparse: Path):
+    """pycolmap.Reconstruction of a text or binary model, or a DataError that names the folder."""
+    import pycolmap
+
+    missing = [n for n in MODEL_FILES if not (sparse / f"{n}.bin").is_file() and not (sparse / f"{n}.txt").is_file()]
+    if missing:
+        raise DataError(f"COLMAP model {sparse} lacks {', '.join(m + '.bin/.txt' for m in missing)}; "
+                        "re-export the model from COLMAP (File > Export model) or re-run `splatzoo sfm`")
+    try:
+        return pycolmap.Reconstruction(sparse)
+    except Exception as e:  # pycolmap raises plain RuntimeError/ValueError on truncated files
+        raise DataError(f"cannot read COLMAP model {sparse}: {e}. The files may be truncated or corrupt; "
+                        "re-export the model or re-run `splatzoo sfm`") from None
+
+
+def _model_stamp(sparse: Path, images_dir: Path, masks_dir: Path | None) -> str:
+    """Fingerprint of what an undistorted copy was made from: model file contents plus image names."""
+    h = hashlib.sha1()
+    for n in MODEL_FILES:
+        for ext in (".bin", ".txt"):
+            f = sparse / (n + ext)
+            if f.is_file():
+                h.update(f.name.encode())
+                h.update(f.read_bytes())
+    h.update(str(images_dir.resolve()).encode())
+    h.update(str(masks_dir.resolve() if masks_dir else "").encode())
+    return h.hexdigest()
+
+
+def _quiet_colmap(level: int = 1):
+    """Silence pycolmap's log lines below `level` (glog: 1 = warnings, 2 = errors) for the duration of a call;
+    our own progress messages say what is happening."""
+    import contextlib
+
+    import pycolmap
+
+    @contextlib.contextmanager
+    def cm():
+        old = pycolmap.logging.minloglevel
+        pycolmap.logging.minloglevel = max(old, level)
+        try:
+            yield
+        finally:
+            pycolmap.logging.minloglevel = old
+    return cm()
+
+
+def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None) -> Path:
+    """Undistorted copy of the dataset (PINHOLE cameras) in root/undistorted/, reused while it is current.
+
+    Masks (masks/<image name> or masks/<stem>.png) are warped by the same maps. If the dataset folder is not
+    writable the copy goes to ~/.cache/splatzoo/undistorted/<fingerprint>/ instead.
+    """
+    import pycolmap
+
+    stamp = _model_stamp(sparse, images_dir, masks_dir)
+    target = root / UNDISTORTED_DIR
+    if not os.access(root, os.W_OK):
+        cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "splatzoo" / UNDISTORTED_DIR
+        target = cache / stamp[:16]
+    stamp_file = target / "source.json"
+    if stamp_file.is_file():
+        try:
+            if json.loads(stamp_file.read_text()).get("stamp") == stamp:
+                return target
+        except (OSError, ValueError):
+            pass
+    import sys
+
+    print(f"splatzoo: undistorting the images of {root} into {target} (done once, reused later) ...",
+          file=sys.stderr, flush=True)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    try:
+        with _quiet_colmap():
+            try:
+                pycolmap.undistort_images(tmp, sparse, images_dir)
+            except Exception as e:
+                raise DataError(f"undistorting {root} failed: {e}. Check that every image named in {sparse} "
+                                f"exists in {images_dir}") from None
+            if masks_dir is not None:
+                _undistort_masks(tmp, sparse, images_dir, masks_dir)
+        for junk in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
+            p = tmp / junk
+            shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+        (tmp / "source.json").write_text(json.dumps({"stamp": stamp, "from": str(root)}) + "\n")
+        _replace_dir(tmp, target)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return target
+
+
+def _undistort_masks(out: Path, sparse: Path, images_dir: Path, masks_dir: Path) -> None:
+    import pycolmap
+
+    model = read_model(sparse)
+    names = [im.name for im in model.images.values() if im.has_pose]
+    # pycolmap looks masks up under the image names: give it a folder of links with exactly those names.
+    with tempfile.TemporaryDirectory(dir=out) as links, tempfile.TemporaryDirectory(dir=out) as work:
+        for n in names:
+            m = find_mask(masks_dir, n)
+            if m is None:  # incomplete masks: leave them out; asking for masks then names the missing one
+                return
+            dst = Path(links) / n
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.symlink(m.resolve(), dst)
+        pycolmap.undistort_images(work, sparse, links)
+        shutil.move(str(Path(work) / "images"), str(out / "masks"))
+
+
+def _replace_dir(new: Path, target: Path) -> None:
+    """Rename `new` over `target`; the old folder is moved aside first and deleted after."""
+    old = None
+    if target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}")
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(target, old)
+    os.replace(new, target)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _camera_K(cam) -> np.ndarray:
+    name = cam.model_name if hasattr(cam, "model_name") else str(cam.model).split(".")[-1]
+    p = np.asarray(cam.params, dtype=np.float64)
+    if name == "SIMPLE_PINHOLE":
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+    elif name == "PINHOLE":
+        fx, fy, cx, cy = p[:4]
+    else:
+        raise DataError(f"camera {cam.camera_id} has model {name}; only PINHOLE/SIMPLE_PINHOLE load directly")
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
+
+
+def _model_name(cam) -> str:
+    return cam.model_name if hasattr(cam, "model_name") else str(cam.model).split(".")[-1]
+
+
+def load_colmap(root, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
+                background=(0.0, 0.0, 0.0), masks: bool = False) -> Scene:
+    """Read a COLMAP dataset folder: images/ (or images_<n>/ for resolution n) and sparse/0/."""
+    root = Path(root)
+    images_dir = root / "images"
+    if not images_dir.is_dir():
+        raise DataError(f"COLMAP dataset {root} has no images/ folder; put the photos in {images_dir} "
+                        "(next to sparse/0/)")
+    if not list_images(images_dir):
+        raise DataError(f"image folder {images_dir} is empty (no .png/.jpg files); copy the photos there")
+    sparse = find_sparse_dir(root)
+    if sparse is None:
+        raise DataError(f"COLMAP dataset {root} has no sparse model (sparse/0/cameras.bin or .txt); "
+                        f"run `splatzoo sfm {images_dir} --out {root}` to make one")
+    model = read_model(sparse)
+    registered = [im for im in model.images.values() if im.has_pose]
+    if not registered:
+        raise DataError(f"COLMAP model {sparse} has no registered images (none has a pose); SfM failed on "
+                        "these photos: take more overlapping photos of a textured subject and re-run `splatzoo sfm`")
+    if model.num_points3D() == 0:
+        raise DataError(f"COLMAP model {sparse} has no 3D points, so there is nothing to initialise surfels "
+                        "from; re-run `splatzoo sfm` (or COLMAP point_triangulator) to triangulate points")
+    masks_dir = root / "masks" if (root / "masks").is_dir() else None
+
+    distorted = sorted({_model_name(model.cameras[im.camera_id]) for im in registered} - set(PINHOLE_MODELS))
+    if distorted:
+        # Masks are undistorted along with the images whether or not they are asked for now, so loading with
+        # and without masks shares one cached copy.
+        und = undistort(root, sparse, images_dir, masks_dir)
+        model = read_model(und / "sparse")
+        registered = [im for im in model.images.values() if im.has_pose]
+        images_dir = und / "images"
+        masks_dir = und / "masks" if (und / "masks").is_dir() else None
+        resolution_dir = None
+    else:
+        resolution_dir = root / f"images_{resolution}" if resolution in (2, 4, 8) else None
+
+    # Each image must exist and match its camera's size: a stray crop or rotated photo would shift every pixel.
+    missing = [im.name for im in registered if not (images_dir / im.name).is_file()]
+    if missing:
+        raise DataError(f"{len(missing)} image(s) named in {sparse} are missing from {images_dir} "
+                        f"(e.g. {', '.join(missing[:3])}); restore them or re-run SfM on the images you have")
+    sizes = {im.name: image_size(images_dir / im.name) for im in registered}
+    by_camera: dict[int, set] = defaultdict(set)
+    for im in registered:
+        by_camera[im.camera_id].add(sizes[im.name])
+    cam_scale: dict[int, tuple[float, float]] = {}
+    for cid, found in by_camera.items():
+        cam = model.cameras[cid]
+        if len(found) > 1:
+            examples = {s: next(im.name for im in registered if im.camera_id == cid and sizes[im.name] == s)
+                        for s in found}
+            listing = ", ".join(f"{n} is {w}x{h}" for (w, h), n in sorted(examples.items(), key=lambda x: x[1]))
+            raise DataError(f"images of camera {cid} in {images_dir} differ in size ({listing}); COLMAP camera "
+                            f"{cid} is {cam.width}x{cam.height}. Resize them all to one size or re-run SfM "
+                            "with one camera per image size")
+        (w, h), = found
+        if (w, h) != (cam.width, cam.height):
+            sx, sy = w / cam.width, h / cam.height
+            # A uniformly downscaled copy of the images is fine (intrinsics scale with it); anything else is not.
+            if abs(sx - sy) * max(cam.width, cam.height) > 1.0:
+                name = next(im.name for im in registered if im.camera_id == cid)
+                raise DataError(f"image {images_dir / name} is {w}x{h} but COLMAP camera {cid} is "
+                                f"{cam.width}x{cam.height} (a different aspect ratio); use the images the model "
+                                "was made from, or re-run SfM on these")
+            cam_scale[cid] = (sx, sy)
+
+    if masks and distorted and masks_dir is None and (root / "masks").is_dir():
+        lacking = next((im.name for im in registered if find_mask(root / "masks", im.name) is None), None)
+        raise DataError(f"masks requested but {root / 'masks'} has no mask for image {lacking}, so the masks could "
+                        f"not be undistorted with the images; add masks/{lacking} (or .png) for every image, "
+                        "or load without masks")
+    views = []
+    for im in sorted(registered, key=lambda im: im.name):
+        ccam = model.cameras[im.camera_id]
+        K = _camera_K(ccam)
+        w, h = sizes[im.name]
+        if im.camera_id in cam_scale:
+            sx, sy = cam_scale[im.camera_id]
+            K[0] *= sx
+            K[1] *= sy
+        w2c = np.eye(4)
+        w2c[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+        cam = Camera(torch.from_numpy(w2c), torch.from_numpy(K), w, h, im.name)
+        cam = scale_camera(cam, target_scale(w, h, resolution, max_width))
+        path = images_dir / im.name
+        if resolution_dir is not None and (resolution_dir / im.name).is_file():
+            # Pre-shrunk copies (Mip-NeRF 360 layout) decode faster; accept them when they have the right size.
+            rw, rh = image_size(resolution_dir / im.name)
+            if abs(rw - cam.width) <= 1 and abs(rh - cam.height) <= 1:
+                path = resolution_dir / im.name
+        mask_path, use_mask = None, False
+        if masks:
+            mask_path = find_mask(masks_dir, im.name) if masks_dir is not None else None
+            if mask_path is None and not image_has_alpha(path):
+                tried = ", ".join(dict.fromkeys([im.name, im.name + ".png", Path(im.name).stem + ".png"]))
+                raise DataError(f"masks requested but image {path} has no alpha channel and no mask file in "
+                                f"{root / 'masks'} (looked for {tried}); add masks or load without masks")
+            use_mask = True
+        views.append(View(camera=cam, name=im.name, path=path, mask_path=mask_path, use_mask=use_mask,
+                          background=tuple(background)))
+
+    ids = sorted(model.points3D.keys())
+    xyz = np.array([model.points3D[i].xyz for i in ids], dtype=np.float32).reshape(-1, 3)
+    rgb = np.array([model.points3D[i].color for i in ids], dtype=np.float32).reshape(-1, 3) / 255.0
+    points, colors = torch.from_numpy(xyz), torch.from_numpy(rgb)
+    train, test = split_views(views, test_every, root)
+    return Scene(name=root.resolve().name, root=root, train=train, test=test, points=points, colors=colors,
+                 extent=camera_extent([v.camera for v in (train or views)], points),
+                 background=tuple(background), mesh_path=mesh_path_of(root))
+
+
+# --- writing ------------------------------------------------------------------------------------------------
+
+def write_model(out_dir, cameras: list[Camera], names: list[str], points: np.ndarray | None = None,
+                colors: np.ndarray | None = None, tracks: list[list[tuple[int, np.ndarray]]] | None = None, *,
+                text: bool = False) -> Path:
+    """Write a COLMAP model of known PINHOLE cameras (one COLMAP camera per distinct intrinsics).
+
+    points [M,3], colors [M,3] uint8 or [0,1] float; tracks[m] = [(view index, xy pixel position), ...]
+    (observations, so the model is like one SfM would give). Writes binary, or text with text=True.
+    """
+    import pycolmap
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rec = pycolmap.Reconstruction()
+    cam_ids: dict[tuple, int] = {}
+    view_cam = []
+    for cam in cameras:
+        K = cam.K.double()
+        key = (cam.width, cam.height, *[round(float(x), 9) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])])
+        if key not in cam_ids:
+            cam_ids[key] = len(cam_ids) + 1
+            rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=key[0], height=key[1],
+                                                            params=list(key[2:]), camera_id=cam_ids[key]))
+        view_cam.append(cam_ids[key])
+    keypoints: list[list[np.ndarray]] = [[] for _ in cameras]
+    elements: list[list[tuple[int, int]]] = []
+    if points is not None and tracks is not None:
+        for m, track in enumerate(tracks):
+            els = []
+            for vi, xy in track:
+                els.append((vi, len(keypoints[vi])))
+                keypoints[vi].append(np.asarray(xy, dtype=np.float64))
+            elements.append(els)
+    for i, (cam, name) in enumerate(zip(cameras, names)):
+        kp = np.array(keypoints[i], dtype=np.float64).reshape(-1, 2)
+        image = pycolmap.Image(name=name, keypoints=kp, camera_id=view_cam[i], image_id=i + 1)
+        w2c = cam.world_to_camera.double().numpy()
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(w2c[:3, :4]))
+    if points is not None:
+        cols = np.asarray(colors if colors is not None else np.full_like(points, 0.5))
+        if cols.dtype != np.uint8:
+            cols = (np.clip(cols, 0, 1) * 255 + 0.5).astype(np.uint8)
+        for m, p in enumerate(np.asarray(points, dtype=np.float64)):
+            els = elements[m] if elements else []
+            track = pycolmap.Track([pycolmap.TrackElement(vi + 1, k) for vi, k in els])
+            rec.add_point3D(p, track, cols[m])
+    (rec.write_text if text else rec.write_binary)(str(out_dir))
+    return out_dir

@@ -1,0 +1,365 @@
+"""Scene and View: what every dataset reader returns, plus `load_scene`, which picks the reader.
+
+Images stay on disk until asked for: a View decodes its file on first use and keeps the pixels only while a
+process-wide byte budget allows (env SPLATZOO_IMAGE_CACHE_MB, default 1024), so a 200-image full-HD capture
+does not need tens of GB while a 48-view 256x256 synthetic scene is decoded once.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import DataError
+from ..types import Camera
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr")
+
+
+# --- image decoding ---------------------------------------------------------------------------------------
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file from its header, without decoding the pixels."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except FileNotFoundError:
+        raise DataError(f"image {path} does not exist; restore the file or remove it from the dataset") from None
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        raise DataError(f"image {path} is unreadable or corrupt ({e}); re-export the image or delete it "
+                        "and re-run SfM") from None
+
+
+def image_has_alpha(path: Path) -> bool:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info)
+    except OSError:
+        return False
+
+
+def read_image(path: Path) -> np.ndarray:
+    """Decode to uint8 [H,W,3] RGB or [H,W,4] RGBA (straight alpha). EXIF rotation is ignored, as COLMAP does."""
+    import cv2
+
+    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if data is None or data.size == 0:
+        if not Path(path).exists():
+            raise DataError(f"image {path} does not exist; restore the file or remove it from the dataset")
+        raise DataError(f"image {path} is unreadable or corrupt (cannot decode it); re-export the image "
+                        "or delete it and re-run SfM")
+    if data.dtype == np.uint16:
+        data = (data.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
+    elif data.dtype != np.uint8:  # float EXR and friends: assume [0,1]
+        data = (np.clip(data.astype(np.float32), 0, 1) * 255 + 0.5).astype(np.uint8)
+    if data.ndim == 2:
+        data = data[:, :, None]
+    c = data.shape[2]
+    if c == 1:
+        return np.repeat(data, 3, axis=2)
+    if c == 2:  # grey + alpha
+        return np.concatenate([np.repeat(data[:, :, :1], 3, axis=2), data[:, :, 1:]], axis=2)
+    if c == 3:
+        return np.ascontiguousarray(data[:, :, ::-1])
+    return np.ascontiguousarray(data[:, :, [2, 1, 0, 3]])
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """Decode a mask file to uint8 [H,W]: its alpha channel if it has one, else its grey level."""
+    px = read_image(path)
+    return px[:, :, 3] if px.shape[2] == 4 else px[:, :, :3].max(axis=2)
+
+
+def _resize(px: np.ndarray, width: int, height: int) -> np.ndarray:
+    import cv2
+
+    if px.shape[1] == width and px.shape[0] == height:
+        return px
+    shrink = width < px.shape[1] and height < px.shape[0]
+    out = cv2.resize(px, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return out[:, :, None] if out.ndim == 2 and px.ndim == 3 else out
+
+
+class _PixelCache:
+    """Decoded pixels kept while they fit a byte budget; beyond it views decode on every call."""
+
+    def __init__(self) -> None:
+        self._items: dict[tuple, np.ndarray] = {}
+        self._used = 0
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def budget() -> int:
+        try:
+            return int(float(os.environ.get("SPLATZOO_IMAGE_CACHE_MB", "1024")) * 2**20)
+        except ValueError:
+            return 2**30
+
+    def get(self, key: tuple, load) -> np.ndarray:
+        with self._lock:
+            hit = self._items.get(key)
+        if hit is not None:
+            return hit
+        px = load()
+        px.setflags(write=False)  # shared between callers: nobody may edit it in place
+        with self._lock:
+            if self._used + px.nbytes <= self.budget():
+                self._items[key] = px
+                self._used += px.nbytes
+        return px
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self._used = 0
+
+
+PIXEL_CACHE = _PixelCache()
+
+
+# --- View and Scene ---------------------------------------------------------------------------------------
+
+@dataclass(eq=False)   # identity: views can key dicts, and tensors have no truth value
+class View:
+    """One posed image. `camera` is float32 and already scaled to the requested resolution.
+
+    image() -> uint8 [H,W,3]; image_float() -> float32 [H,W,3] in [0,1], RGBA sources composited over
+    `background`; mask() -> float32 [H,W] in [0,1] (None unless masks were requested when loading).
+    """
+
+    camera: Camera
+    name: str
+    path: Path | None = field(default=None, repr=False)
+    mask_path: Path | None = field(default=None, repr=False)   # a separate mask file, if any
+    use_mask: bool = field(default=False, repr=False)          # mask() answers (from mask_path or alpha)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    pixels: np.ndarray | None = field(default=None, repr=False, compare=False)  # in-memory source
+
+    @staticmethod
+    def from_tensor(camera: Camera, image: torch.Tensor, name: str = "", *,
+                    background=(0.0, 0.0, 0.0)) -> "View":
+        """A view over an in-memory image: uint8 or float [0,1], [H,W,3] or [H,W,4] (straight alpha)."""
+        a = torch.as_tensor(image).detach().cpu()
+        if a.is_floating_point():
+            a = (a.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+        if a.dim() != 3 or a.shape[2] not in (3, 4):
+            raise DataError(f"View.from_tensor: image must be [H,W,3] or [H,W,4], got {list(a.shape)}")
+        return View(camera=camera, name=name or camera.name, background=tuple(background),
+                    use_mask=a.shape[2] == 4, pixels=a.numpy())
+
+    # Premultiplied RGB (+ alpha) at camera size: resizing premultiplied colour keeps edges free of fringes.
+    def _premultiplied(self) -> np.ndarray:
+        w, h = self.camera.width, self.camera.height
+
+        def load() -> np.ndarray:
+            px = self.pixels if self.pixels is not None else read_image(self.path)
+            if px.shape[2] == 4:
+                f = px.astype(np.float32)
+                a = f[:, :, 3:4] / 255.0
+                f = np.concatenate([f[:, :, :3] * a, f[:, :, 3:4]], axis=2)
+                f = _resize(f, w, h)
+                return (np.clip(f, 0, 255) + 0.5).astype(np.uint8)
+            return _resize(np.ascontiguousarray(px[:, :, :3]), w, h)
+
+        if self.pixels is not None:
+            return load()
+        return PIXEL_CACHE.get(("img", str(self.path), w, h), load)
+
+    def image(self) -> torch.Tensor:
+        """uint8 [H,W,3] at camera size."""
+        px = self._premultiplied()
+        if px.shape[2] == 3:
+            return torch.from_numpy(px.copy())
+        return (self._composite(px) * 255 + 0.5).to(torch.uint8)
+
+    def image_float(self) -> torch.Tensor:
+        """float32 [H,W,3] in [0,1] at camera size; transparent pixels show `background`."""
+        px = self._premultiplied()
+        if px.shape[2] == 3:
+            return torch.from_numpy(px.astype(np.float32) / np.float32(255.0))
+        return self._composite(px)
+
+    def _composite(self, px: np.ndarray) -> torch.Tensor:
+        t = torch.from_numpy(px.astype(np.float32) / np.float32(255.0))
+        bg = torch.tensor(self.background, dtype=torch.float32)
+        return (t[:, :, :3] + (1 - t[:, :, 3:4]) * bg).clamp_(0, 1)
+
+    def mask(self) -> torch.Tensor | None:
+        """float32 [H,W] in [0,1], or None when masks were not requested."""
+        if not self.use_mask:
+            return None
+        w, h = self.camera.width, self.camera.height
+        if self.mask_path is None:
+            px = self._premultiplied()
+            if px.shape[2] != 4:
+                raise DataError(f"image {self.path} has no alpha channel and no mask file; load without masks")
+            return torch.from_numpy(px[:, :, 3].astype(np.float32) / np.float32(255.0))
+
+        def load() -> np.ndarray:
+            return _resize(read_mask(self.mask_path), w, h)
+
+        m = PIXEL_CACHE.get(("mask", str(self.mask_path), w, h), load)
+        return torch.from_numpy(m.astype(np.float32) / np.float32(255.0))
+
+
+@dataclass(eq=False)
+class Scene:
+    """A dataset ready for training: views split into train/test, an initial point cloud and its scale."""
+
+    name: str
+    root: Path
+    train: list[View]
+    test: list[View]
+    points: torch.Tensor      # [M,3] float32
+    colors: torch.Tensor      # [M,3] float32 in [0,1]
+    extent: float             # 1.1 x radius of the (train) camera centres around their mean
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mesh_path: Path | None = None
+
+    @property
+    def views(self) -> list[View]:
+        """Every view, sorted by name."""
+        return sorted(self.train + self.test, key=lambda v: v.name)
+
+    def __repr__(self) -> str:
+        return (f"Scene({self.name!r}, root={str(self.root)!r}, train={len(self.train)}, test={len(self.test)}, "
+                f"points={self.points.shape[0]}, extent={self.extent:.4g})")
+
+
+# --- helpers shared by the readers --------------------------------------------------------------------------
+
+def camera_extent(cameras: list[Camera], points: torch.Tensor | None = None) -> float:
+    """1.1 x the radius of the camera centres around their mean (the 2DGS/3DGS convention).
+
+    With a single camera (or all at one spot) the radius is 0; then the point cloud's radius stands in, so
+    learning rates scaled by the extent stay sensible.
+    """
+    centers = torch.stack([c.center.double() for c in cameras])
+    radius = float((centers - centers.mean(0)).norm(dim=1).max())
+    if radius < 1e-9 and points is not None and len(points) > 1:
+        p = points.double()
+        radius = float((p - p.mean(0)).norm(dim=1).max())
+    return 1.1 * (radius if radius > 1e-9 else 1.0)
+
+
+def split_views(views: list[View], test_every: int, where: Path) -> tuple[list[View], list[View]]:
+    """Sort by name; index % test_every == 0 is a test view (0 disables the split)."""
+    if test_every < 0 or test_every == 1:
+        raise DataError(f"test_every={test_every} is not allowed: use 0 (no test split) or >= 2 "
+                        "(every n-th image, by sorted name, is a test view)")
+    views = sorted(views, key=lambda v: v.name)
+    if test_every == 0:
+        return views, []
+    test = [v for i, v in enumerate(views) if i % test_every == 0]
+    train = [v for i, v in enumerate(views) if i % test_every != 0]
+    if not train:
+        raise DataError(f"{where}: only {len(views)} image(s), all of which would be test views; "
+                        "load with test_every=0 or add images")
+    return train, test
+
+
+def target_scale(width: int, height: int, resolution: int | None, max_width: int | None) -> float:
+    """The factor applied to a camera of this size: 1/resolution, then capped so width <= max_width."""
+    factor = 1.0
+    if resolution is not None:
+        if resolution not in (1, 2, 4, 8):
+            raise DataError(f"resolution={resolution} is not supported: use 1, 2, 4 or 8 (a downscale factor), "
+                            "or max_width for any other size")
+        factor = 1.0 / resolution
+    if max_width is not None:
+        if max_width < 1:
+            raise DataError(f"max_width={max_width} must be a positive number of pixels")
+        factor = min(factor, max_width / width)
+    return factor
+
+
+def scale_camera(cam: Camera, factor: float) -> Camera:
+    cam = cam.scaled(factor) if factor != 1.0 else cam
+    return cam.to(dtype=torch.float32)
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files under `folder` (recursively), sorted, as paths relative to it."""
+    return sorted(p.relative_to(folder) for p in folder.rglob("*")
+                  if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+
+
+def find_mask(masks_dir: Path, name: str) -> Path | None:
+    """masks/<name>, masks/<name>.png or masks/<stem>.png: the common conventions."""
+    for cand in (masks_dir / name, masks_dir / (name + ".png"), (masks_dir / name).with_suffix(".png")):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def mesh_path_of(root: Path) -> Path | None:
+    """A ground-truth mesh named by scene.json (synthetic scenes), else mesh.ply if present."""
+    import json
+
+    info = root / "scene.json"
+    if info.is_file():
+        try:
+            mesh = json.loads(info.read_text()).get("mesh")
+        except (OSError, ValueError, AttributeError):
+            mesh = None
+        if mesh and (root / mesh).is_file():
+            return root / mesh
+    return root / "mesh.ply" if (root / "mesh.ply").is_file() else None
+
+
+# --- the entry point ------------------------------------------------------------------------------------------
+
+def detect_format(path: Path) -> str:
+    """'blender' or 'colmap'; a DataError says what a dataset folder must contain otherwise."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"dataset folder {path} does not exist; check the path (create one with "
+                        "`splatzoo sfm IMAGES --out DATA` or `splatzoo synth NAME --out DATA`)")
+    if not path.is_dir():
+        raise DataError(f"{path} is a file, not a dataset folder; pass the folder that holds images/ and sparse/0/ "
+                        "(COLMAP) or transforms_train.json (Blender)")
+    if (path / "transforms_train.json").is_file() or (path / "transforms.json").is_file():
+        return "blender"
+    from .colmap import find_sparse_dir
+
+    if find_sparse_dir(path) is not None or (path / "images").is_dir() or (path / "sparse").is_dir():
+        return "colmap"
+    if not any(path.iterdir()):
+        raise DataError(f"dataset folder {path} is empty; put a COLMAP dataset (images/ + sparse/0/) or a Blender "
+                        "dataset (transforms_train.json + images) there, or run `splatzoo sfm` on a folder of photos")
+    raise DataError(f"{path} is not a dataset: expected images/ and sparse/0/ (COLMAP) or transforms_train.json "
+                    "(Blender/NeRF-synthetic). For a folder of photos run `splatzoo sfm "
+                    f"{path} --out DATA` first")
+
+
+def load_scene(path, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
+               background=(0.0, 0.0, 0.0), masks: bool = False) -> Scene:
+    """Load a COLMAP or Blender/NeRF-synthetic dataset folder (detected automatically).
+
+    resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width.
+    test_every: images sorted by name, index % test_every == 0 go to `test` (0: no test split; Blender
+    datasets with transforms_test.json use their own split). background: RGB in [0,1] behind RGBA images.
+    masks: expose per-view masks (masks/<name> files, else the image alpha channel).
+    """
+    path = Path(path).expanduser()
+    background = tuple(float(c) for c in background)
+    if len(background) != 3 or not all(0.0 <= c <= 1.0 for c in background):
+        raise DataError(f"background must be three numbers in [0,1], got {background}")
+    kind = detect_format(path)
+    if kind == "blender":
+        from .blender import load_blender
+
+        return load_blender(path, resolution=resolution, max_width=max_width, test_every=test_every,
+                            background=background, masks=masks)
+    from .colmap import load_colmap
+
+    return load_colmap(path, resolution=resolution, max_width=max_width, test_every=test_every,
+                       background=background, masks=masks)
