@@ -1,0 +1,189 @@
+"""Evaluation of a trained model: image metrics on the test views, render speed, size; renders and videos."""
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import SplatzooError
+from .io import atomic_path, write_json
+from .rasterizers import rasterize, resolve_backend
+from .types import Camera
+
+LPIPS_NET = "vgg"
+LPIPS_CONVENTION = "3dgs"  # the 2DGS/3DGS metrics script (and the paper's tables) feed [0,1] images to VGG
+
+
+def _device(model) -> torch.device:
+    return next(model.parameters()).device
+
+
+@torch.no_grad()
+def render_view(model, camera: Camera, background, backend: str) -> torch.Tensor:
+    """float [H,W,3] in [0,1] on the CPU."""
+    device = _device(model)
+    cam = camera.to(device, torch.float32)
+    bg = torch.tensor(background, dtype=torch.float32, device=device)
+    return rasterize(model.surfels(cam), cam, backend=backend, background=bg).rgb.clamp(0, 1).cpu()
+
+
+@torch.no_grad()
+def measure_fps(model, cameras: list[Camera], background, backend: str, min_frames: int = 10) -> float:
+    """Frames per second over the cameras (cycled to at least min_frames), after one warm-up pass."""
+    if not cameras:
+        return float("nan")
+    device = _device(model)
+    cams = [c.to(device, torch.float32) for c in cameras]
+    bg = torch.tensor(background, dtype=torch.float32, device=device)
+    for c in cams[:2]:
+        rasterize(model.surfels(c), c, backend=backend, background=bg)
+    frames = max(min_frames, len(cams))
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    sync()
+    t0 = time.perf_counter()
+    for i in range(frames):
+        c = cams[i % len(cams)]
+        rasterize(model.surfels(c), c, backend=backend, background=bg)
+    sync()
+    return frames / (time.perf_counter() - t0)
+
+
+def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None = None,
+             iterations: int | None = None, lpips_net: str = LPIPS_NET, lpips_convention: str = LPIPS_CONVENTION,
+             split: str = "test") -> dict:
+    """metrics.json content: psnr, ssim, lpips (means over the split's views), fps, train_seconds,
+    num_primitives, size_bytes, iterations, model, backend, and the metric conventions used."""
+    from .metrics import lpips, psnr, ssim
+
+    backend = resolve_backend(backend, _device(model))
+    views = scene.test if split == "test" and scene.test else scene.train
+    used = "test" if views is scene.test else "train"
+    ps, ss, ls = [], [], []
+    for v in views:
+        pred, gt = render_view(model, v.camera, scene.background, backend), v.image_float()
+        ps.append(psnr(pred, gt))
+        ss.append(ssim(pred, gt))
+        ls.append(lpips(pred, gt, net=lpips_net, convention=lpips_convention) if min(gt.shape[:2]) >= 32 else float("nan"))
+    finite = [p for p in ps if math.isfinite(p)]
+    return {
+        "psnr": float(np.mean(finite)) if finite else float("inf"),
+        "ssim": float(np.mean(ss)), "lpips": float(np.mean(ls)),
+        "fps": measure_fps(model, [v.camera for v in views], scene.background, backend),
+        "train_seconds": train_seconds, "num_primitives": model.num_primitives, "size_bytes": model.size_bytes(),
+        "iterations": iterations, "model": model.name, "backend": backend, "split": used, "views": len(views),
+        "resolution": [views[0].camera.width, views[0].camera.height] if views else None,
+        "conventions": {"psnr": "mean of per-image PSNR", "ssim": "3DGS: 11x11 Gaussian, sigma 1.5, zero padding",
+                        "lpips": f"v0.1 {lpips_net}, {lpips_convention} input convention"},
+    }
+
+
+def to_uint8(img: torch.Tensor) -> np.ndarray:
+    return (img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def write_png(path, img) -> None:
+    import cv2
+
+    arr = to_uint8(img) if isinstance(img, torch.Tensor) else img
+    with atomic_path(path, suffix=".png") as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(arr[..., ::-1])):
+            raise SplatzooError(f"could not write image {path}")
+
+
+def save_test_renders(model, scene, out_dir, *, backend: str = "auto", split: str = "test") -> list[Path]:
+    backend = resolve_backend(backend, _device(model))
+    views = scene.test if split == "test" else scene.train
+    out_dir = Path(out_dir) / split
+    paths = []
+    for v in views:
+        p = out_dir / (Path(v.name).stem + ".png")
+        write_png(p, render_view(model, v.camera, scene.background, backend))
+        paths.append(p)
+    return paths
+
+
+def load_run(run_dir):
+    """(model, scene, config record) of a run directory, with a clear error if it is incomplete."""
+    from .data import load_scene
+    from .zoo import load_model
+
+    run_dir = Path(run_dir)
+    cfg_path, model_path = run_dir / "config.json", run_dir / "model.pt"
+    if not cfg_path.is_file():
+        raise SplatzooError(f"{run_dir} is not a splatzoo run (no config.json); pass the --out folder of `splatzoo train`")
+    if not model_path.is_file():
+        hint = " (training was interrupted: finish it with `splatzoo train ... --resume`)" if (run_dir / "checkpoint.pt").exists() else ""
+        raise SplatzooError(f"{run_dir} has no trained model (model.pt){hint}")
+    record = json.loads(cfg_path.read_text())
+    scene = load_scene(record["data"], **record.get("scene_options", {}))
+    return load_model(model_path), scene, record
+
+
+def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str = LPIPS_NET,
+                 lpips_convention: str = LPIPS_CONVENTION) -> dict:
+    run_dir = Path(run_dir)
+    model, scene, record = load_run(run_dir)
+    old = json.loads((run_dir / "metrics.json").read_text()) if (run_dir / "metrics.json").exists() else {}
+    metrics = evaluate(model, scene, backend=backend, train_seconds=old.get("train_seconds"),
+                       iterations=record["train"]["iterations"], lpips_net=lpips_net, lpips_convention=lpips_convention)
+    write_json(run_dir / "metrics.json", metrics)
+    return metrics
+
+
+def orbit_cameras(cameras: list[Camera], frames: int = 60) -> list[Camera]:
+    """Cameras on a circle through the mean camera height, looking at the point the cameras look at most."""
+    centers = torch.stack([c.center.double() for c in cameras])
+    dirs = torch.stack([c.R[2].double() for c in cameras])  # optical axes in world coordinates
+    # the point closest to every optical axis (least squares)
+    A = torch.zeros(3, 3, dtype=torch.float64)
+    b = torch.zeros(3, dtype=torch.float64)
+    for c, d in zip(centers, dirs):
+        P = torch.eye(3, dtype=torch.float64) - torch.outer(d, d)
+        A += P
+        b += P @ c
+    target = torch.linalg.lstsq(A, b).solution
+    up = -torch.stack([c.R[1].double() for c in cameras]).mean(0)  # image up (-y) averaged
+    up = up / up.norm()
+    rel = centers - target
+    height = (rel @ up).mean()
+    radius = (rel - (rel @ up)[:, None] * up).norm(dim=1).mean()
+    e1 = rel[0] - (rel[0] @ up) * up
+    e1 = e1 / e1.norm()
+    e2 = torch.linalg.cross(up, e1)
+    ref = cameras[0]
+    fov = 2 * math.degrees(math.atan(ref.width / (2 * float(ref.K[0, 0]))))
+    cams = []
+    for i in range(frames):
+        a = 2 * math.pi * i / frames
+        eye = target + up * height + radius * (math.cos(a) * e1 + math.sin(a) * e2)
+        cams.append(Camera.look_at(eye, target, up=-up, fov_deg=fov, width=ref.width, height=ref.height,
+                                   name=f"orbit_{i:03d}"))
+    return cams
+
+
+def render_run(run_dir, *, split: str = "test", video: bool = False, backend: str = "auto", frames: int = 60) -> list[Path]:
+    """Write the split's renders as PNG (and an orbit video as mp4); returns the written paths."""
+    run_dir = Path(run_dir)
+    model, scene, _ = load_run(run_dir)
+    if split not in ("test", "train"):
+        raise SplatzooError(f"unknown split {split!r}; use test or train")
+    paths = save_test_renders(model, scene, run_dir / "renders", backend=backend, split=split)
+    if video:
+        import cv2
+
+        backend = resolve_backend(backend, _device(model))
+        cams = orbit_cameras([v.camera for v in scene.train], frames)
+        path = run_dir / "renders" / "orbit.mp4"
+        with atomic_path(path, suffix=".mp4") as tmp:
+            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), 30, (cams[0].width, cams[0].height))
+            if not writer.isOpened():
+                raise SplatzooError("OpenCV cannot write mp4 here (no mp4v encoder); render PNGs without --video")
+            for c in cams:
+                writer.write(np.ascontiguousarray(to_uint8(render_view(model, c, scene.background, backend))[..., ::-1]))
+            writer.release()
+        paths.append(path)
+    return paths

@@ -1,0 +1,134 @@
+"""Adaptive density control for surfel models (2DGS): clone small, split large, prune transparent.
+
+Editing the primitive count also edits Adam's moment buffers row by row, so training continues smoothly.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..geometry import quat_to_rotmat
+from ..models.base import SurfelModel, inverse_sigmoid
+from ..types import Camera
+
+
+class DensifyStats:
+    """Running sum of each primitive's screen-space position-gradient norm over the views that saw it."""
+
+    def __init__(self, n: int):
+        self.grad_sum = torch.zeros(n)
+        self.count = torch.zeros(n)
+
+    @torch.no_grad()
+    def accumulate(self, model: SurfelModel, camera: Camera) -> None:
+        """Add this view's gradient. The world gradient of a mean, projected on the image plane and scaled by
+        depth / focal, is the gradient with respect to its pixel position; times W/2, H/2 it is the NDC
+        gradient that the 2e-4 threshold of 2DGS refers to."""
+        g = model.means.grad
+        if g is None:
+            return
+        cam = camera.to(g.device, g.dtype)
+        p_cam = model.means.detach() @ cam.R.T + cam.t
+        g_cam = g @ cam.R.T
+        depth = p_cam[:, 2]
+        px = cam.K[0, 0] * p_cam[:, 0] / depth.clamp_min(1e-6) + cam.K[0, 2]
+        py = cam.K[1, 1] * p_cam[:, 1] / depth.clamp_min(1e-6) + cam.K[1, 2]
+        visible = (depth > 0.2) & (px >= 0) & (px < cam.width) & (py >= 0) & (py < cam.height)
+        gx = g_cam[:, 0] * depth / cam.K[0, 0] * cam.width / 2
+        gy = g_cam[:, 1] * depth / cam.K[1, 1] * cam.height / 2
+        norm = torch.sqrt(gx * gx + gy * gy)
+        self.grad_sum += torch.where(visible, norm, torch.zeros_like(norm)).cpu()
+        self.count += visible.float().cpu()
+
+    def mean(self) -> torch.Tensor:
+        return self.grad_sum / self.count.clamp_min(1)
+
+    def state_dict(self) -> dict:
+        return {"grad_sum": self.grad_sum, "count": self.count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.grad_sum, self.count = state["grad_sum"].clone(), state["count"].clone()
+
+
+def _edit_primitives(model: SurfelModel, optimizer: torch.optim.Optimizer, keep: torch.Tensor,
+                     new: dict[str, torch.Tensor]) -> None:
+    """Keep rows `keep` (bool [N]) of every per-primitive parameter and append rows `new[name]`; Adam moments
+    of kept rows survive, appended rows start at zero."""
+    params = model.per_primitive()
+    by_id = {id(p): name for name, p in params.items()}
+    replacements = {}
+    for name, p in params.items():
+        replacements[name] = torch.cat([p.detach()[keep], new[name].to(p)])
+    old_states = {}
+    for group in optimizer.param_groups:
+        for i, p in enumerate(group["params"]):
+            name = by_id.get(id(p))
+            if name is not None:
+                old_states[name] = (group, i, optimizer.state.pop(p, None))
+    model.replace_parameters(replacements)
+    fresh = model.per_primitive()
+    for name, (group, i, state) in old_states.items():
+        p = fresh[name]
+        group["params"][i] = p
+        if state:
+            n_new = new[name].shape[0]
+            for key in ("exp_avg", "exp_avg_sq"):
+                if key in state:
+                    state[key] = torch.cat([state[key][keep], state[key].new_zeros(n_new, *state[key].shape[1:])])
+            optimizer.state[p] = state
+
+
+@torch.no_grad()
+def densify_and_prune(model: SurfelModel, optimizer, stats: DensifyStats, *, grad_threshold: float,
+                      scene_extent: float, min_opacity: float, generator: torch.Generator,
+                      percent_dense: float = 0.01, max_world_scale: float | None = None,
+                      max_primitives: int | None = None) -> dict:
+    """One densification step; returns counts of cloned, split and pruned primitives."""
+    params = {k: v.detach() for k, v in model.per_primitive().items()}
+    n = model.num_primitives
+    grads = stats.mean().to(params["means"].device)
+    scales = torch.exp(params["log_scales"]).max(1).values
+    hot = grads >= grad_threshold
+    if max_primitives is not None:  # budget: keep only the hottest candidates
+        room = max(0, max_primitives - n)
+        if int(hot.sum()) > room:
+            top = torch.topk(torch.where(hot, grads, torch.zeros_like(grads)), room).indices
+            hot = torch.zeros_like(hot)
+            hot[top] = True
+    clone = hot & (scales <= percent_dense * scene_extent)
+    split = hot & ~clone
+    # clones copy the primitive; splits draw two children on the tangent plane, shrunk by 1.6
+    new = {k: v[clone] for k, v in params.items()}
+    if split.any():
+        idx = split.nonzero().squeeze(1).repeat(2)
+        R = quat_to_rotmat(params["quats"][idx])
+        s = torch.exp(params["log_scales"][idx])
+        offset = torch.randn(idx.numel(), 2, generator=generator).to(s) * s
+        children = {k: v[idx] for k, v in params.items()}
+        children["means"] = params["means"][idx] + (R[:, :, :2] @ offset[..., None]).squeeze(-1)
+        children["log_scales"] = torch.log(s / 1.6)
+        new = {k: torch.cat([new[k], children[k]]) for k in params}
+    opacity = torch.sigmoid(params["logit_opacity"])
+    keep = ~split & (opacity >= min_opacity)
+    if max_world_scale is not None:
+        keep &= scales <= max_world_scale
+    # never prune everything: an empty model cannot recover
+    if not keep.any() and not any(v.shape[0] for v in new.values()):
+        keep = torch.ones_like(keep)
+    _edit_primitives(model, optimizer, keep.cpu() if keep.device.type == "cpu" else keep, new)
+    n_new = model.num_primitives
+    stats.grad_sum = torch.zeros(n_new)
+    stats.count = torch.zeros(n_new)
+    return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int((~keep).sum() - split.sum()),
+            "primitives": n_new}
+
+
+@torch.no_grad()
+def reset_opacity(model: SurfelModel, optimizer, value: float = 0.01) -> None:
+    """Clamp every opacity to at most `value` (and clear its Adam moments), as 2DGS does periodically."""
+    p = model.logit_opacity
+    p.copy_(torch.minimum(p, inverse_sigmoid(torch.tensor(value)).to(p)))
+    state = optimizer.state.get(p)
+    if state:
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in state:
+                state[key].zero_()

@@ -1,0 +1,116 @@
+"""Training end to end: loss goes down, interrupted runs resume to the same result, CLI and compare outputs."""
+import json
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from splatzoo.cli import app
+from splatzoo.data import load_scene
+from splatzoo.errors import SplatzooError
+from splatzoo.training import TrainConfig, train
+from splatzoo.training.losses import depth_to_normal
+from splatzoo import Camera
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    return make_synthetic_scene("sweater", tmp_path_factory.mktemp("data") / "sweater", views=10, width=48, height=48)
+
+
+def small_config(**kw):
+    base = dict(iterations=40, backend="auto", num_primitives=300, log_every=5, eval_every=20, seed=3)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_training_raises_test_psnr(tiny_data, tmp_path):
+    scene = load_scene(tiny_data)
+    result = train(scene, "gabor", {}, small_config(iterations=150, densify=False), tmp_path / "run", progress=False)
+    log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
+    first = [r["train_psnr"] for r in log if "train_psnr" in r][:3]
+    last = [r["train_psnr"] for r in log if "train_psnr" in r][-3:]
+    assert sum(last) / 3 > sum(first) / 3 + 2.0, (first, last)
+    m = result.metrics
+    for key in ("psnr", "ssim", "lpips", "fps", "train_seconds", "num_primitives", "size_bytes", "iterations",
+                "model", "backend", "conventions"):
+        assert key in m
+    # the untrained model's test PSNR, for comparison
+    from splatzoo import create_model
+    from splatzoo.training.trainer import select_initial_points, test_psnr
+
+    pts, cols = select_initial_points(scene.points, scene.colors, 300, 3)
+    initial = test_psnr(create_model("gabor", pts, cols, seed=3), scene, result.metrics["backend"])
+    assert m["psnr"] > initial + 3.0, (initial, m["psnr"])
+    assert (tmp_path / "run" / "renders" / "test").is_dir()
+    cfg = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert cfg["model_config"] == {"n_waves": 4} and cfg["train"]["iterations"] == 150
+
+
+@pytest.mark.parametrize("model", ["gabor", "2dgs"])
+def test_resume_gives_the_same_parameters(tiny_data, tmp_path, model):
+    scene = load_scene(tiny_data)
+    cfg = small_config(iterations=30, backend="reference", num_primitives=120, densify=True,
+                       densify_from=0, densify_interval=10000, opacity_reset_interval=20000)
+    full = train(scene, model, {}, cfg, tmp_path / "full", progress=False, evaluate_at_end=False)
+    part = train(scene, model, {}, cfg, tmp_path / "part", progress=False, evaluate_at_end=False, stop_after=17)
+    assert not (tmp_path / "part" / "model.pt").exists()
+    resumed = train(scene, model, {}, None, tmp_path / "part", resume=True, progress=False, evaluate_at_end=False)
+    a, b = full.model.state_dict(), resumed.model.state_dict()
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    log_a = (tmp_path / "full" / "train_log.jsonl").read_text().splitlines()
+    log_b = (tmp_path / "part" / "train_log.jsonl").read_text().splitlines()
+    assert [json.loads(x)["iteration"] for x in log_a] == [json.loads(x)["iteration"] for x in log_b]
+    del part
+
+
+def test_existing_run_is_not_overwritten(tiny_data, tmp_path):
+    train(tiny_data, "2dgs", {}, small_config(iterations=2), tmp_path / "r", progress=False, evaluate_at_end=False)
+    with pytest.raises(SplatzooError, match="--resume"):
+        train(tiny_data, "2dgs", {}, small_config(iterations=2), tmp_path / "r", progress=False)
+    with pytest.raises(SplatzooError, match="no checkpoint"):
+        train(tiny_data, "2dgs", {}, None, tmp_path / "empty", resume=True, progress=False)
+
+
+def test_depth_to_normal_of_a_plane():
+    cam = Camera.look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0], width=16, height=16, dtype=torch.float32)
+    depth = torch.full((16, 16), 3.0)
+    n = depth_to_normal(depth, cam)
+    assert torch.allclose(n[5:10, 5:10], torch.tensor([0.0, 0.0, -1.0]).expand(5, 5, 3), atol=1e-5)
+
+
+def test_cli_train_eval_render_compare(tiny_data, tmp_path):
+    run = tmp_path / "cli_run"
+    r = runner.invoke(app, ["train", str(tiny_data), "--model", "gabor", "--n-waves", "2", "--iterations", "20",
+                            "--num-primitives", "200", "--no-densify", "--out", str(run)])
+    assert r.exit_code == 0, r.output
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["model_config"]["n_waves"] == 2
+    r = runner.invoke(app, ["eval", str(run), "--lpips-net", "alex"])
+    assert r.exit_code == 0, r.output
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert "alex" in metrics["conventions"]["lpips"] and metrics["num_primitives"] == 200
+    r = runner.invoke(app, ["render", str(run), "--split", "train", "--video", "--frames", "8"])
+    assert r.exit_code == 0, r.output
+    assert (run / "renders" / "orbit.mp4").stat().st_size > 1000
+    r = runner.invoke(app, ["train", str(tiny_data), "--model", "gabor", "--n-wave", "2", "--out", str(tmp_path / "x")])
+    assert r.exit_code != 0 and "n-waves" in str(r.exception or r.output)
+
+    out = tmp_path / "cmp"
+    r = runner.invoke(app, ["compare", "gabor", "2dgs", "--data", str(tiny_data), "--out", str(out),
+                            "--iterations", "20", "--num-primitives", "200"])
+    assert r.exit_code == 0, r.output
+    report = json.loads((out / "compare.json").read_text())
+    assert set(report["runs"]) == {"gabor", "2dgs"} and report["settings"]["num_primitives"] == 200
+    for m in report["runs"].values():
+        assert m["num_primitives"] == 200
+    text = (out / "report.md").read_text()
+    assert "| gabor |" in text and "**" in text
+    for png in ("compare.png", "convergence.png"):
+        assert (out / png).stat().st_size > 10_000
