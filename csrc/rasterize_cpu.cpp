@@ -1,0 +1,285 @@
+// CPU tile loop: OpenMP over 16x16 tiles. The per-pair maths is in surfel_math.h.
+//
+// Each (surfel, tile) pair is handled in two phases:
+//   1. eval_rows: alpha (and u, v, z) of the surfel at every pixel of the rows its box covers, a pure float loop
+//      that vectorises across pixels (no integer counters or early exits in it);
+//   2. a scalar pass over the pixels with alpha > 0 that blends (forward) or back-propagates (backward).
+// Forward and backward call the same non-inlined eval_rows, so both see bit-identical alphas and agree on which
+// pairs contributed. Per-surfel gradients are written per (surfel, tile) pair into a scratch row and summed per
+// surfel at the end: no atomics, and the result does not depend on the thread count.
+#include <omp.h>
+
+#include <algorithm>
+#include <cstring>
+#include <vector>
+
+#include "rasterize.h"
+#include "surfel_math.h"
+
+namespace sz {
+
+namespace {
+
+template <class S>
+struct TileScratch {
+    alignas(64) S xs[TILE];
+    alignas(64) S alpha[TILE_PIXELS];
+    alignas(64) S u[TILE_PIXELS];
+    alignas(64) S v[TILE_PIXELS];
+    alignas(64) S z[TILE_PIXELS];
+};
+
+// Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z per pixel.
+template <class S>
+__attribute__((noinline)) void eval_rows(const Geom<S>& g, const S* xs, S y0, int r0, int r1, S* alpha, S* us, S* vs,
+                                         S* zs) {
+    const Geom<S> gl = g;  // a local copy lets the compiler keep every field in a register
+    for (int r = r0; r <= r1; ++r) {
+        const S y = y0 + S(r);
+        S* al = alpha + r * TILE;
+        S* ur = us + r * TILE;
+        S* vr = vs + r * TILE;
+        S* zr = zs + r * TILE;
+#pragma omp simd
+        for (int c = 0; c < TILE; ++c) {
+            PairEval<S> e;
+            eval_pair(gl, xs[c], y, e);
+            al[c] = e.alpha;
+            ur[c] = e.u;
+            vr[c] = e.v;
+            zr[c] = e.z;
+        }
+    }
+}
+
+struct TileRect {
+    int x0, y0, w, h;
+};
+
+inline TileRect tile_rect(int t, int W, int H) {
+    int tx = t % tiles_x(W), ty = t / tiles_x(W);
+    TileRect r{tx * TILE, ty * TILE, 0, 0};
+    r.w = std::min(TILE, W - r.x0);
+    r.h = std::min(TILE, H - r.y0);
+    return r;
+}
+
+// The surfel's box clipped to the tile, tile-relative; false if empty.
+inline bool clip_box(const int* b, const TileRect& tr, int& c0, int& c1, int& r0, int& r1) {
+    c0 = std::max(b[0] - tr.x0, 0);
+    c1 = std::min(b[1] - tr.x0, tr.w - 1);
+    r0 = std::max(b[2] - tr.y0, 0);
+    r1 = std::min(b[3] - tr.y0, tr.h - 1);
+    return c0 <= c1 && r0 <= r1;
+}
+
+template <class S>
+struct RowAcc {
+    S* g;
+    void operator()(int i, S v) { g[i] += v; }
+};
+
+}  // namespace
+
+template <class S>
+int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfel_off, int threads) {
+    const int M = s.M;
+#pragma omp parallel for num_threads(threads) schedule(static)
+    for (int i = 0; i < M; ++i) {
+        prepare_geom(s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i],
+                     *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
+        box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
+    }
+    surfel_off[0] = 0;
+    for (int i = 0; i < M; ++i) {
+        const int* b = bounds + 4 * i;
+        int64_t n = 0;
+        if (b[0] <= b[1] && b[2] <= b[3])
+            n = int64_t(b[1] / TILE - b[0] / TILE + 1) * int64_t(b[3] / TILE - b[2] / TILE + 1);
+        surfel_off[i + 1] = surfel_off[i] + n;
+    }
+    return surfel_off[M];
+}
+
+void cpu_bin(int M, int W, int H, const int* bounds, const int64_t* surfel_off, int* tile_start, int* tile_list,
+             int* pair_pos) {
+    const int ntx = tiles_x(W), nt = ntx * tiles_y(H);
+    std::vector<int> count(nt + 1, 0);
+    for (int i = 0; i < M; ++i) {
+        const int* b = bounds + 4 * i;
+        if (b[0] > b[1] || b[2] > b[3]) continue;
+        for (int ty = b[2] / TILE; ty <= b[3] / TILE; ++ty)
+            for (int tx = b[0] / TILE; tx <= b[1] / TILE; ++tx) ++count[ty * ntx + tx];
+    }
+    tile_start[0] = 0;
+    for (int t = 0; t < nt; ++t) tile_start[t + 1] = tile_start[t] + count[t];
+    std::vector<int> cursor(tile_start, tile_start + nt);
+    // surfels in increasing index = front to back, so every tile list comes out in depth order
+    for (int i = 0; i < M; ++i) {
+        const int* b = bounds + 4 * i;
+        if (b[0] > b[1] || b[2] > b[3]) continue;
+        int64_t k = surfel_off[i];
+        for (int ty = b[2] / TILE; ty <= b[3] / TILE; ++ty)
+            for (int tx = b[0] / TILE; tx <= b[1] / TILE; ++tx) {
+                int pos = cursor[ty * ntx + tx]++;
+                tile_list[pos] = i;
+                pair_pos[k++] = pos;
+            }
+    }
+}
+
+template <class S>
+void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
+    const int W = s.W, H = s.H, K = s.K;
+    const int nt = tiles_x(W) * tiles_y(H);
+    const Geom<S>* geom = reinterpret_cast<const Geom<S>*>(f.geom);
+#pragma omp parallel num_threads(threads)
+    {
+        TileScratch<S> sc;
+        std::vector<PixelFwd<S>> px(TILE_PIXELS);
+#pragma omp for schedule(dynamic, 1)
+        for (int t = 0; t < nt; ++t) {
+            const TileRect tr = tile_rect(t, W, H);
+            for (int c = 0; c < TILE; ++c) sc.xs[c] = S(tr.x0 + c) + S(0.5);
+            int active = 0;
+            for (int p = 0; p < TILE_PIXELS; ++p) {
+                bool inside = (p % TILE) < tr.w && (p / TILE) < tr.h;
+                pixel_init(px[p], !inside);
+                active += inside;
+            }
+            const int start = f.tile_start[t], end = f.tile_start[t + 1];
+            const S y0 = S(tr.y0) + S(0.5);
+            for (int pos = start; pos < end && active > 0; ++pos) {
+                const int i = f.tile_list[pos];
+                int c0, c1, r0, r1;
+                if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
+                eval_rows(geom[i], sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
+                const S* n = s.normal + 3 * i;
+                const S* base = s.base + 3 * i;
+                const S* wv = s.wv + 2 * K * int64_t(i);
+                const S* wp = s.wp + K * int64_t(i);
+                const S* wa = s.wa + 3 * K * int64_t(i);
+                const int rel = pos - start;
+                for (int r = r0; r <= r1; ++r)
+                    for (int c = c0; c <= c1; ++c) {
+                        const int p = r * TILE + c;
+                        const S a = sc.alpha[p];
+                        if (a == S(0) || px[p].done) continue;
+                        S col[3], pre[3];
+                        wave_color(base, wv, wp, wa, K, sc.u[p], sc.v[p], col, pre);
+                        blend_forward(px[p], a, sc.z[p], col, n, rel);
+                        active -= px[p].done;
+                    }
+            }
+            for (int r = 0; r < tr.h; ++r)
+                for (int c = 0; c < tr.w; ++c) {
+                    const PixelFwd<S>& q = px[r * TILE + c];
+                    const int64_t o = int64_t(tr.y0 + r) * W + tr.x0 + c;
+                    const S acc = S(1) - q.T;
+                    for (int k = 0; k < 3; ++k) {
+                        f.rgb[3 * o + k] = q.rgb[k];
+                        f.normal[3 * o + k] = q.N[k];
+                    }
+                    f.alpha[o] = acc;
+                    f.depth[o] = acc > S(0) ? q.D / acc : S(0);
+                    f.median[o] = q.med >= 0 ? q.median : S(0);
+                    f.dist[o] = q.dist;
+                    f.Tfinal[o] = q.T;
+                    f.tot[3 * o] = q.A;
+                    f.tot[3 * o + 1] = q.M1;
+                    f.tot[3 * o + 2] = q.M2;
+                    f.last[o] = q.last;
+                    f.med[o] = q.med;
+                }
+        }
+    }
+}
+
+template <class S>
+void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, const int64_t* surfel_off,
+                  const int* pair_pos, S* partials, int threads) {
+    const int W = s.W, H = s.H, K = s.K, M = s.M;
+    const int GW = grad_width(K);
+    const int nt = tiles_x(W) * tiles_y(H);
+    const Geom<S>* geom = reinterpret_cast<const Geom<S>*>(f.geom);
+#pragma omp parallel num_threads(threads)
+    {
+        TileScratch<S> sc;
+        std::vector<PixelBwd<S>> px(TILE_PIXELS);
+#pragma omp for schedule(dynamic, 1)
+        for (int t = 0; t < nt; ++t) {
+            const TileRect tr = tile_rect(t, W, H);
+            for (int c = 0; c < TILE; ++c) sc.xs[c] = S(tr.x0 + c) + S(0.5);
+            const int start = f.tile_start[t], end = f.tile_start[t + 1];
+            int maxlast = 0;
+            for (int p = 0; p < TILE_PIXELS; ++p) {
+                const int r = p / TILE, c = p % TILE;
+                if (r >= tr.h || c >= tr.w) {
+                    px[p].last = 0;
+                    continue;
+                }
+                const int64_t o = int64_t(tr.y0 + r) * W + tr.x0 + c;
+                pixel_bwd_init(px[p], f.Tfinal[o], f.tot + 3 * o, f.last[o], f.med[o], f.depth[o], g.g_rgb + 3 * o,
+                               g.g_alpha[o], g.g_depth[o], g.g_median[o], g.g_normal + 3 * o, g.g_dist[o]);
+                maxlast = std::max(maxlast, px[p].last);
+            }
+            // pairs behind every pixel's last contribution get no gradient
+            if (start + maxlast < end)
+                std::memset(partials + int64_t(start + maxlast) * GW, 0, sizeof(S) * int64_t(end - start - maxlast) * GW);
+            const S y0 = S(tr.y0) + S(0.5);
+            for (int pos = start + maxlast - 1; pos >= start; --pos) {
+                const int i = f.tile_list[pos];
+                S* row = partials + int64_t(pos) * GW;
+                std::memset(row, 0, sizeof(S) * GW);
+                int c0, c1, r0, r1;
+                if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
+                const Geom<S>& gm = geom[i];
+                eval_rows(gm, sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
+                const S* n = s.normal + 3 * i;
+                const S* base = s.base + 3 * i;
+                const S* wv = s.wv + 2 * K * int64_t(i);
+                const S* wp = s.wp + K * int64_t(i);
+                const S* wa = s.wa + 3 * K * int64_t(i);
+                const int rel = pos - start;
+                RowAcc<S> acc{row};
+                for (int r = r0; r <= r1; ++r)
+                    for (int c = c0; c <= c1; ++c) {
+                        const int p = r * TILE + c;
+                        const S a = sc.alpha[p];
+                        if (a == S(0) || rel >= px[p].last) continue;
+                        PairEval<S> e;
+                        eval_pair(gm, sc.xs[c], y0 + S(r), e);
+                        // the decision and the values blended come from eval_rows, exactly as in the forward
+                        e.alpha = a;
+                        e.u = sc.u[p];
+                        e.v = sc.v[p];
+                        e.z = sc.z[p];
+                        blend_backward(px[p], gm, e, n, base, wv, wp, wa, K, rel, acc);
+                    }
+            }
+        }
+        // sum each surfel's pair rows (surfel-major CSR), then map the slots to input gradients
+        std::vector<double> sum(GW);
+#pragma omp for schedule(dynamic, 64)
+        for (int i = 0; i < M; ++i) {
+            std::fill(sum.begin(), sum.end(), 0.0);
+            for (int64_t k = surfel_off[i]; k < surfel_off[i + 1]; ++k) {
+                const S* row = partials + int64_t(pair_pos[k]) * GW;
+                for (int j = 0; j < GW; ++j) sum[j] += double(row[j]);
+            }
+            finalize_grads(s.T + 9 * i, s.center + 2 * i, sum.data(), K, g.v_T + 9 * i, g.v_center + 2 * i,
+                           g.v_depth + i, g.v_normal + 3 * i, g.v_opac + i, g.v_base + 3 * i,
+                           g.v_wv + 2 * K * int64_t(i), g.v_wp + K * int64_t(i), g.v_wa + 3 * K * int64_t(i));
+        }
+    }
+}
+
+#define SZ_INSTANTIATE(S)                                                                                           \
+    template int64_t cpu_prepare<S>(const SurfelArgs<S>&, S*, int*, int64_t*, int);                                 \
+    template void cpu_forward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, int);                                  \
+    template void cpu_backward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, const GradArgs<S>&, const int64_t*,   \
+                                  const int*, S*, int);
+SZ_INSTANTIATE(float)
+SZ_INSTANTIATE(double)
+
+}  // namespace sz

@@ -1,0 +1,450 @@
+// Per-(surfel, pixel) maths of the splatzoo tile rasterizers, written once for the C++ and the CUDA tile loops.
+//
+// It reproduces splatzoo/rasterizers/reference.py (_shade_rect, _wave_color) operation for operation, plus the
+// hand-written derivatives. The tile loops (rasterize_cpu.cpp, rasterize_cuda.cu) own binning and traversal only.
+//
+// Gradients of one (surfel, pixel) pair are accumulated through a functor `acc(slot, value)` into the slots below
+// (a per-surfel row of grad_width(K) scalars); finalize_grads() turns a summed row into gradients of the op inputs.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+
+#ifdef __CUDACC__
+#define SZ_HD __host__ __device__ __forceinline__
+#else
+#define SZ_HD inline __attribute__((always_inline))
+#endif
+
+namespace sz {
+
+// Same numbers as splatzoo/rasterizers/common.py (tests/test_native.py checks they agree).
+constexpr double NEAR = 0.2;
+constexpr double FAR = 100.0;
+constexpr double ALPHA_MAX = 0.99;
+constexpr double ALPHA_MIN = 1.0 / 255.0;
+constexpr double T_MIN = 1e-4;
+constexpr double FILTER_INV_SQ = 2.0;
+constexpr double PARALLEL_EPS = 1e-6;  // reference.py PARALLEL_EPS
+constexpr int TILE = 16;
+constexpr int TILE_PIXELS = TILE * TILE;
+
+// Per-surfel geometry prepared once per render (prepare_geom): GEOM scalars, in this order.
+constexpr int GEOM = 16;
+template <class S>
+struct Geom {
+    S A[3], B[3], C[3];  // c(x, y) = (x - cx) A + (y - cy) B + C   (the cross product h_x x h_y, expanded)
+    S cx, cy, zc;        // projected centre (pixels) and camera depth of the centre
+    S m3[3];             // third row of T: hit depth z = m3 . (u, v, 1)
+    S o;                 // opacity
+};
+
+// Gradient slots of one surfel row.
+enum : int {
+    G_C = 0,        // sum over pixels of dL/dc            (3)
+    G_CX = 3,       // sum of (x - cx) dL/dc               (3)
+    G_CY = 6,       // sum of (y - cy) dL/dc               (3)
+    G_M3 = 9,       // dL/dm3 through the hit depth        (3)
+    G_ZC = 12,      // dL/d centre depth (filter wins)     (1)
+    G_CENTER = 13,  // dL/d centre_px through the filter   (2)
+    G_O = 15,       // dL/d opacity                        (1)
+    G_BASE = 16,    // dL/d base colour                    (3)
+    G_NORMAL = 19,  // dL/d surfel normal                  (3)
+    G_WAVES = 22,   // per wave: d k_x, d k_y, d phi, d a (3)
+};
+constexpr int G_PER_WAVE = 6;
+SZ_HD int grad_width(int K) { return G_WAVES + G_PER_WAVE * K; }
+
+// ---- small branch-free helpers (they must vectorise inside `omp simd` loops) ------------------------------------
+template <class S> SZ_HD S sabs(S x) { return x < S(0) ? -x : x; }
+template <class S> SZ_HD S smax(S a, S b) { return a > b ? a : b; }
+template <class S> SZ_HD S smin(S a, S b) { return a < b ? a : b; }
+
+#ifndef __CUDA_ARCH__
+// Round to nearest for |x| < 2^22 without a libm call (GCC does not vectorise std::floor under the default
+// -ftrapping-math): adding and subtracting 1.5 * 2^23 drops the fraction bits. Never build this header
+// with -ffast-math, which may fold the two additions away.
+SZ_HD float round_magic(float x) {
+    return (x + 12582912.0f) - 12582912.0f;
+}
+
+// exp for float on the host: Cephes polynomial with an explicit 2^n, so GCC can vectorise it (libm's expf is a call).
+// About 1 ulp on [-87, 88]; clamped below so 2^n stays a normal number.
+SZ_HD float exp_poly(float x) {
+    // Bounds that depend on x (0 * x is not folded without -ffast-math): with constant bounds GCC's PRE turns the
+    // clamp into a branch around the whole polynomial and the loop no longer vectorises.
+    const float zero = 0.0f * x;
+    x = smin(smax(x, -87.0f + zero), 88.0f + zero);
+    float n = round_magic(x * 1.44269504088896341f);
+    float r = x - n * 0.693359375f - n * -2.12194440e-4f;
+    float p = 1.9875691500e-4f;
+    p = p * r + 1.3981999507e-3f;
+    p = p * r + 8.3334519073e-3f;
+    p = p * r + 4.1665795894e-2f;
+    p = p * r + 1.6666665459e-1f;
+    p = p * r + 5.0000001201e-1f;
+    float y = p * r * r + r + 1.0f;
+    int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
+    float scale;
+    std::memcpy(&scale, &bits, sizeof(scale));
+    return y * scale;
+}
+
+// sin and cos for float on the host: Cody-Waite reduction by pi/2 and Cephes polynomials (about 1e-7 absolute for
+// |x| < 1e4, finite and within [-1, 1] beyond; |x| is clamped at 1e6). Scalar libm sincosf costs several times more per call.
+SZ_HD void sincos_poly(float x, float& s, float& c) {
+    const float zero = 0.0f * x;  // see exp_poly
+    x = smin(smax(x, -1e6f + zero), 1e6f + zero);
+    float j = round_magic(x * 0.636619772367581343f);
+    float r = ((x - j * 1.5703125f) - j * 4.837512969970703125e-4f) - j * 7.54978995489188216e-8f;
+    float r2 = r * r;
+    float ps = ((-1.9515295891e-4f * r2 + 8.3321608736e-3f) * r2 - 1.6666654611e-1f) * r2 * r + r;
+    float pc = ((2.443315711809948e-5f * r2 - 1.388731625493765e-3f) * r2 + 4.166664568298827e-2f) * r2 * r2
+               - 0.5f * r2 + 1.0f;
+    int q = static_cast<int>(j) & 3;
+    float sv = (q & 1) ? pc : ps;
+    float cv = (q & 1) ? ps : pc;
+    s = (q & 2) ? -sv : sv;
+    c = ((q + 1) & 2) ? -cv : cv;
+}
+#endif
+
+SZ_HD float sz_exp(float x) {
+#ifdef __CUDA_ARCH__
+    return expf(x);
+#else
+    return exp_poly(x);
+#endif
+}
+SZ_HD double sz_exp(double x) { return exp(x); }
+
+SZ_HD void sz_sincos(float x, float& s, float& c) {
+#ifdef __CUDA_ARCH__
+    sincosf(x, &s, &c);
+#else
+    sincos_poly(x, s, c);
+#endif
+}
+SZ_HD void sz_sincos(double x, double& s, double& c) {
+    s = sin(x);
+    c = cos(x);
+}
+
+// ---- per-surfel set-up ------------------------------------------------------------------------------------------
+// T9: rows m1, m2, m3 of M = K [R s_u t_u | R s_v t_v | R p + t] (row-major 3x3). The pixel planes are
+// h_x = x m3 - m1 and h_y = y m3 - m2, and c = h_x x h_y = x (m2 x m3) + y (m3 x m1) + m1 x m2: affine in (x, y).
+// Expanding it around the projected centre (in double, once per surfel) turns the per-pixel cross product into
+// 6 multiply-adds and removes the cancellation the per-pixel form suffers far from the image origin.
+template <class S>
+SZ_HD void prepare_geom(const S* T9, const S* center, S depth, S opacity, Geom<S>& g) {
+    double m1[3] = {double(T9[0]), double(T9[1]), double(T9[2])};
+    double m2[3] = {double(T9[3]), double(T9[4]), double(T9[5])};
+    double m3[3] = {double(T9[6]), double(T9[7]), double(T9[8])};
+    double A[3] = {m2[1] * m3[2] - m2[2] * m3[1], m2[2] * m3[0] - m2[0] * m3[2], m2[0] * m3[1] - m2[1] * m3[0]};
+    double B[3] = {m3[1] * m1[2] - m3[2] * m1[1], m3[2] * m1[0] - m3[0] * m1[2], m3[0] * m1[1] - m3[1] * m1[0]};
+    double C[3] = {m1[1] * m2[2] - m1[2] * m2[1], m1[2] * m2[0] - m1[0] * m2[2], m1[0] * m2[1] - m1[1] * m2[0]};
+    double cx = double(center[0]), cy = double(center[1]);
+    for (int i = 0; i < 3; ++i) {
+        g.A[i] = S(A[i]);
+        g.B[i] = S(B[i]);
+        g.C[i] = S(C[i] + cx * A[i] + cy * B[i]);
+        g.m3[i] = T9[6 + i];
+    }
+    g.cx = center[0];
+    g.cy = center[1];
+    g.zc = depth;
+    g.o = opacity;
+}
+
+// ---- forward of one (surfel, pixel) pair ------------------------------------------------------------------------
+template <class S>
+struct PairEval {
+    S dx, dy;      // pixel centre minus projected centre
+    S c0, c1, c2;  // c = h_x x h_y
+    S u, v, z;     // local coordinates used for colour (0 where the filter wins) and hit depth
+    S ex, raw;     // exp(-rho/2) and o * ex before the clamp
+    S alpha;       // final alpha, 0 where skipped (alpha < 1/255 or z < NEAR)
+    bool use3;     // the ray-splat hit (rho3d) won over the screen filter (rho2d)
+};
+
+// Branch-free so that a loop over pixels vectorises.
+template <class S>
+SZ_HD void eval_pair(const Geom<S>& g, S x, S y, PairEval<S>& e) {
+    S dx = x - g.cx, dy = y - g.cy;
+    S c0 = dx * g.A[0] + dy * g.B[0] + g.C[0];
+    S c1 = dx * g.A[1] + dy * g.B[1] + g.C[1];
+    S c2 = dx * g.A[2] + dy * g.B[2] + g.C[2];
+    // reference: |cz| > PARALLEL_EPS * max(|cx|, |cy|) and cz != 0 (a ray almost parallel to the plane misses
+    // it); the first test already fails for cz == 0. Each select below depends on one comparison only: GCC turns
+    // selects on combined conditions into branches, and the pixel loop stops vectorising.
+    bool hit = sabs(c2) > S(PARALLEL_EPS) * smax(sabs(c0), sabs(c1));
+    S inv = S(1) / (hit ? c2 : S(1));  // a division inside a select would not be speculated (vectorised)
+    inv = hit ? inv : S(0);
+    S uu = c0 * inv, vv = c1 * inv;
+    S rho3 = hit ? uu * uu + vv * vv : S(INFINITY);
+    S rho2 = S(FILTER_INV_SQ) * (dx * dx + dy * dy);
+    bool use3 = rho3 <= rho2;
+    S rho = use3 ? rho3 : rho2;
+    S u = use3 ? uu : S(0);
+    S v = use3 ? vv : S(0);
+    S z = use3 ? g.m3[0] * u + g.m3[1] * v + g.m3[2] : g.zc;
+    S ex = sz_exp(S(-0.5) * rho);
+    S raw = g.o * ex;
+    S a = raw < S(ALPHA_MAX) ? raw : S(ALPHA_MAX);
+    a = a >= S(ALPHA_MIN) ? a : S(0);
+    e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
+    e.u = u; e.v = v; e.z = z; e.ex = ex; e.raw = raw;
+    e.alpha = z >= S(NEAR) ? a : S(0);
+    e.use3 = use3;
+}
+
+// c(u, v) = max(0, c0 + sum_k a_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp.
+template <class S>
+SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int K, S u, S v, S col[3], S pre[3]) {
+    S r = base[0], gg = base[1], b = base[2];
+    for (int k = 0; k < K; ++k) {
+        S sn, cs;
+        sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
+        r += cs * wa[3 * k];
+        gg += cs * wa[3 * k + 1];
+        b += cs * wa[3 * k + 2];
+    }
+    pre[0] = r; pre[1] = gg; pre[2] = b;
+    col[0] = smax(r, S(0)); col[1] = smax(gg, S(0)); col[2] = smax(b, S(0));
+}
+
+// NDC depth of the distortion term, m(z) = f/(f-n) (1 - n/z), and dm/dz.
+template <class S> SZ_HD S ndc_depth(S z) { return S(FAR / (FAR - NEAR)) * (S(1) - S(NEAR) / z); }
+template <class S> SZ_HD S ndc_depth_grad(S z) { return S(FAR / (FAR - NEAR)) * S(NEAR) / (z * z); }
+
+// ---- front-to-back compositing of one pixel ---------------------------------------------------------------------
+template <class S>
+struct PixelFwd {
+    S T, rgb[3], D, N[3], A, M1, M2, dist, median;
+    int last;  // 1 + list position (within the tile) of the last blended contribution; 0 if none
+    int med;   // list position of the median-depth contribution; -1 if none
+    bool done;
+};
+
+template <class S>
+SZ_HD void pixel_init(PixelFwd<S>& p, bool done) {
+    p.T = S(1);
+    p.rgb[0] = p.rgb[1] = p.rgb[2] = S(0);
+    p.D = S(0);
+    p.N[0] = p.N[1] = p.N[2] = S(0);
+    p.A = p.M1 = p.M2 = p.dist = p.median = S(0);
+    p.last = 0;
+    p.med = -1;
+    p.done = done;
+}
+
+// Blend one valid contribution (alpha > 0) at tile-list position `pos`; col is the clamped colour, n the normal.
+// Stops the pixel, without blending, when the contribution would bring T below T_MIN (reference: `kept`).
+template <class S>
+SZ_HD void blend_forward(PixelFwd<S>& p, S alpha, S z, const S col[3], const S* n, int pos) {
+    S Tn = p.T * (S(1) - alpha);
+    if (Tn < S(T_MIN)) {
+        p.done = true;
+        return;
+    }
+    S w = alpha * p.T;
+    p.rgb[0] += w * col[0];
+    p.rgb[1] += w * col[1];
+    p.rgb[2] += w * col[2];
+    p.D += w * z;
+    p.N[0] += w * n[0];
+    p.N[1] += w * n[1];
+    p.N[2] += w * n[2];
+    S m = ndc_depth(z);
+    // distortion sum_i w_i sum_{j<i} w_j (m_i - m_j)^2 from exclusive running sums, as the reference does
+    p.dist += w * (m * m * p.A + p.M2 - S(2) * m * p.M1);
+    p.A += w;
+    p.M1 += w * m;
+    p.M2 += w * m * m;
+    if (p.T > S(0.5)) {  // median depth: the last contribution that starts while T > 0.5
+        p.median = z;
+        p.med = pos;
+    }
+    p.T = Tn;
+    p.last = pos + 1;
+}
+
+// ---- backward ---------------------------------------------------------------------------------------------------
+// Per-pixel state for the back-to-front pass. From the forward: T_final, the totals A = sum w, M1 = sum w m,
+// M2 = sum w m^2, last, med. From the cotangents: g_rgb, g_D (of sum w z), g_Tf (of T_final), g_n, g_dist, g_med.
+template <class S>
+struct PixelBwd {
+    S T;       // transmittance after the contribution being processed (starts at T_final)
+    S suffix;  // sum over later contributions of w_j f_j
+    S Tfinal, A, M1, M2;
+    S g_rgb[3], g_D, g_Tf, g_n[3], g_dist, g_med;
+    int last, med;
+};
+
+// Cotangents of the six outputs -> PixelBwd. depth = D / (1 - T_final) where 1 - T_final > 0, else 0.
+template <class S>
+SZ_HD void pixel_bwd_init(PixelBwd<S>& p, S Tfinal, const S* tot, int last, int med, S depth_out, const S* g_rgb,
+                          S g_alpha, S g_depth, S g_median, const S* g_normal, S g_dist) {
+    p.T = Tfinal;
+    p.suffix = S(0);
+    p.Tfinal = Tfinal;
+    p.A = tot[0]; p.M1 = tot[1]; p.M2 = tot[2];
+    S acc = S(1) - Tfinal;
+    bool pos = acc > S(0);
+    p.g_D = pos ? g_depth / acc : S(0);
+    S g_acc = g_alpha - (pos ? g_depth * depth_out / acc : S(0));
+    p.g_Tf = -g_acc;
+    for (int i = 0; i < 3; ++i) { p.g_rgb[i] = g_rgb[i]; p.g_n[i] = g_normal[i]; }
+    p.g_dist = g_dist;
+    p.g_med = g_median;
+    p.last = last;
+    p.med = med;
+}
+
+// d(alpha, z, u, v) -> surfel slots (opacity, centre, centre depth, and c = h_x x h_y through u, v).
+template <class S, class Acc>
+SZ_HD void geom_backward(const Geom<S>& g, const PairEval<S>& e, S g_alpha, S g_z, S g_u, S g_v, Acc& acc) {
+    S g_rho = S(0);
+    if (e.raw <= S(ALPHA_MAX)) {  // torch.clamp passes the gradient where input <= max
+        acc(G_O, g_alpha * e.ex);
+        g_rho = S(-0.5) * g_alpha * e.raw;
+    }
+    if (e.use3) {
+        g_u += S(2) * e.u * g_rho + g_z * g.m3[0];
+        g_v += S(2) * e.v * g_rho + g_z * g.m3[1];
+        acc(G_M3 + 0, g_z * e.u);
+        acc(G_M3 + 1, g_z * e.v);
+        acc(G_M3 + 2, g_z);
+        S inv = S(1) / e.c2;
+        S gc[3] = {g_u * inv, g_v * inv, -(g_u * e.u + g_v * e.v) * inv};
+        for (int i = 0; i < 3; ++i) {
+            acc(G_C + i, gc[i]);
+            acc(G_CX + i, e.dx * gc[i]);
+            acc(G_CY + i, e.dy * gc[i]);
+        }
+    } else {
+        // the filter won: rho = F |d|^2 with d = pixel - centre, and the surfel is seen at its centre depth
+        acc(G_ZC, g_z);
+        acc(G_CENTER + 0, S(-2 * FILTER_INV_SQ) * g_rho * e.dx);
+        acc(G_CENTER + 1, S(-2 * FILTER_INV_SQ) * g_rho * e.dy);
+    }
+}
+
+// One contribution, back to front. Contributions must be visited in reverse blending order, each exactly once.
+// e: the pair (alpha > 0 and pos < last); base..wa: this surfel's colour parameters; n its normal.
+template <class S, class Acc>
+SZ_HD void blend_backward(PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n, const S* base,
+                          const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc) {
+    S a = e.alpha;
+    S oma = S(1) - a;
+    S Ti = p.T / oma;  // transmittance before this contribution
+    S w = a * Ti;
+    S col[3], pre[3];
+    wave_color(base, wv, wp, wa, K, e.u, e.v, col, pre);
+    S m = ndc_depth(e.z);
+    // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
+    S f = p.g_rgb[0] * col[0] + p.g_rgb[1] * col[1] + p.g_rgb[2] * col[2] + p.g_D * e.z +
+          p.g_n[0] * n[0] + p.g_n[1] * n[1] + p.g_n[2] * n[2] +
+          p.g_dist * (m * m * p.A - S(2) * m * p.M1 + p.M2);
+    // w_j (j > i) carries a factor (1 - alpha_i), and so does T_final
+    S g_alpha = Ti * f - (p.suffix + p.g_Tf * p.Tfinal) / oma;
+    p.suffix += w * f;
+    p.T = Ti;
+    S g_z = w * p.g_D + p.g_dist * S(2) * w * (m * p.A - p.M1) * ndc_depth_grad(e.z);
+    if (pos == p.med) g_z += p.g_med;
+    acc(G_NORMAL + 0, w * p.g_n[0]);
+    acc(G_NORMAL + 1, w * p.g_n[1]);
+    acc(G_NORMAL + 2, w * p.g_n[2]);
+    // colour: the clamp at 0 passes the gradient where the value is >= 0 (torch.clamp)
+    S gcol[3];
+    for (int i = 0; i < 3; ++i) gcol[i] = pre[i] >= S(0) ? w * p.g_rgb[i] : S(0);
+    acc(G_BASE + 0, gcol[0]);
+    acc(G_BASE + 1, gcol[1]);
+    acc(G_BASE + 2, gcol[2]);
+    S g_u = S(0), g_v = S(0);
+    for (int k = 0; k < K; ++k) {
+        S sn, cs;
+        sz_sincos(e.u * wv[2 * k] + e.v * wv[2 * k + 1] + wp[k], sn, cs);
+        S ga = gcol[0] * wa[3 * k] + gcol[1] * wa[3 * k + 1] + gcol[2] * wa[3 * k + 2];
+        S gt = -sn * ga;  // d/d(phase)
+        int o = G_WAVES + G_PER_WAVE * k;
+        acc(o + 0, gt * e.u);
+        acc(o + 1, gt * e.v);
+        acc(o + 2, gt);
+        acc(o + 3, cs * gcol[0]);
+        acc(o + 4, cs * gcol[1]);
+        acc(o + 5, cs * gcol[2]);
+        g_u += gt * wv[2 * k];
+        g_v += gt * wv[2 * k + 1];
+    }
+    // where the filter wins u = v = 0 are constants (reference: torch.where), so g_u, g_v are dropped there
+    geom_backward(g, e, g_alpha, g_z, g_u, g_v, acc);
+}
+
+// A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
+// A = m2 x m3, B = m3 x m1, C = m1 x m2 with c(x, y) = x A + y B + C, so dL/dA = sum x dL/dc = G_CX + cx G_C, etc.
+template <class S, class R>
+SZ_HD void finalize_grads(const S* T9, const S* center, const R* Gs, int K, S* v_T, S* v_center, S* v_depth,
+                          S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp, S* v_wa) {
+    double m1[3], m2[3], m3[3], gA[3], gB[3], gC[3];
+    double cx = double(center[0]), cy = double(center[1]);
+    for (int i = 0; i < 3; ++i) {
+        m1[i] = double(T9[i]);
+        m2[i] = double(T9[3 + i]);
+        m3[i] = double(T9[6 + i]);
+        gC[i] = double(Gs[G_C + i]);
+        gA[i] = double(Gs[G_CX + i]) + cx * gC[i];
+        gB[i] = double(Gs[G_CY + i]) + cy * gC[i];
+    }
+    // d(a x b): g_a = b x g, g_b = g x a
+    auto cross = [](const double* a, const double* b, double* out, double sign) {
+        out[0] += sign * (a[1] * b[2] - a[2] * b[1]);
+        out[1] += sign * (a[2] * b[0] - a[0] * b[2]);
+        out[2] += sign * (a[0] * b[1] - a[1] * b[0]);
+    };
+    double g1[3] = {0, 0, 0}, g2[3] = {0, 0, 0}, g3[3] = {0, 0, 0};
+    cross(m3, gA, g2, 1.0);  // A = m2 x m3
+    cross(gA, m2, g3, 1.0);
+    cross(m1, gB, g3, 1.0);  // B = m3 x m1
+    cross(gB, m3, g1, 1.0);
+    cross(m2, gC, g1, 1.0);  // C = m1 x m2
+    cross(gC, m1, g2, 1.0);
+    for (int i = 0; i < 3; ++i) {
+        v_T[i] = S(g1[i]);
+        v_T[3 + i] = S(g2[i]);
+        v_T[6 + i] = S(g3[i] + double(Gs[G_M3 + i]));
+        v_base[i] = S(Gs[G_BASE + i]);
+        v_normal[i] = S(Gs[G_NORMAL + i]);
+    }
+    v_center[0] = S(Gs[G_CENTER]);
+    v_center[1] = S(Gs[G_CENTER + 1]);
+    v_depth[0] = S(Gs[G_ZC]);
+    v_opac[0] = S(Gs[G_O]);
+    for (int k = 0; k < K; ++k) {
+        const R* w = Gs + G_WAVES + G_PER_WAVE * k;
+        v_wv[2 * k] = S(w[0]);
+        v_wv[2 * k + 1] = S(w[1]);
+        v_wp[k] = S(w[2]);
+        v_wa[3 * k] = S(w[3]);
+        v_wa[3 * k + 1] = S(w[4]);
+        v_wa[3 * k + 2] = S(w[5]);
+    }
+}
+
+// Pixel range [x0, x1] x [y0, y1] (inclusive, clamped to the image; empty if x0 > x1 or y0 > y1) of the pixel
+// centres i + 0.5 inside a screen box (xmin, ymin, xmax, ymax). The boxes are exact (common.screen_boxes).
+template <class S>
+SZ_HD void box_pixels(const S* box, int W, int H, int* out) {
+    double lim = 1e9;  // keeps the int conversion defined for huge boxes
+    double bx0 = smin(smax(double(box[0]), -lim), lim), by0 = smin(smax(double(box[1]), -lim), lim);
+    double bx1 = smin(smax(double(box[2]), -lim), lim), by1 = smin(smax(double(box[3]), -lim), lim);
+    int x0 = int(ceil(bx0 - 0.5)), y0 = int(ceil(by0 - 0.5));
+    int x1 = int(floor(bx1 - 0.5)), y1 = int(floor(by1 - 0.5));
+    out[0] = smax(x0, 0);
+    out[1] = smin(x1, W - 1);
+    out[2] = smax(y0, 0);
+    out[3] = smin(y1, H - 1);
+}
+
+}  // namespace sz
