@@ -17,15 +17,20 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 
 
 @app.command("models")
-def models_command() -> None:
+def models_command(
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="also list each model's options"),
+) -> None:
     """List the available models: name, origin (built-in or plugin) and description; broken plugins say why."""
+    from .options import describe_options
     from .registry import MODELS
 
     for entry in MODELS.entries():
         if entry.broken:
             typer.echo(f"{entry.name:<14} {entry.origin:<24} BROKEN: {entry.error}")
-        else:
-            typer.echo(f"{entry.name:<14} {entry.origin:<24} {entry.spec.description}")
+            continue
+        typer.echo(f"{entry.name:<14} {entry.origin:<24} {entry.spec.description}")
+        if verbose:
+            typer.echo(describe_options(entry.name))
 
 
 @app.callback()
@@ -35,12 +40,230 @@ def _root() -> None:
 
 # --- data commands (splatzoo sfm, splatzoo synth) ---------------------------------------------------------
 # (data commands go here)
+@app.command("sfm")
+def sfm_command(
+    images_dir: Path = typer.Argument(..., help="Folder of photos (png/jpg) of one static subject."),
+    out: Path = typer.Option(..., "--out", "-o", help="Dataset folder to create (images/, sparse/0/)."),
+    camera_model: str = typer.Option("SIMPLE_RADIAL", help="COLMAP camera model to estimate; non-pinhole "
+                                      "models are undistorted automatically when the dataset is loaded."),
+    single_camera: bool = typer.Option(True, help="One camera shared by all photos of one size."),
+    seed: int = typer.Option(0, help="Random seed for the mapper."),
+    overwrite: bool = typer.Option(False, help="Replace an existing output folder."),
+) -> None:
+    """Structure from motion on the CPU (pycolmap): poses and a sparse point cloud from photos."""
+    from .data.sfm import run_sfm
+
+    res = run_sfm(images_dir, out, progress=typer.echo, camera_model=camera_model, single_camera=single_camera,
+                  seed=seed, overwrite=overwrite)
+    if res.num_registered < res.num_images:
+        typer.echo(f"warning: only {res.num_registered} of {res.num_images} images registered", err=True)
+
+
+@app.command("synth")
+def synth_command(
+    name: Optional[str] = typer.Argument(None, help="Scene name (see --list)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset folder to create."),
+    views: int = typer.Option(48, help="Number of views."),
+    width: int = typer.Option(256, help="Image width in pixels."),
+    height: int = typer.Option(256, help="Image height in pixels."),
+    seed: int = typer.Option(0, help="Seed for camera jitter and point sampling."),
+    sfm: bool = typer.Option(False, "--sfm", help="Recover poses and points with SfM instead of the true ones."),
+    list_scenes: bool = typer.Option(False, "--list", help="List the synthetic scenes and exit."),
+    overwrite: bool = typer.Option(False, help="Replace an existing output folder."),
+) -> None:
+    """Render a synthetic high-frequency benchmark scene as a COLMAP dataset (with its true mesh)."""
+    from .data.synthetic import list_scenes as scenes, make_synthetic_scene
+
+    if list_scenes:
+        for scene_name, description in scenes().items():
+            typer.echo(f"{scene_name:<10} {description}")
+        return
+    if name is None or out is None:
+        raise typer.BadParameter("give a scene NAME and --out DATA (or --list to see the scenes)")
+    make_synthetic_scene(name, out, views=views, width=width, height=height, seed=seed, sfm=sfm,
+                         overwrite=overwrite, progress=typer.echo)
 
 # --- rasterizer benchmark (splatzoo bench) ----------------------------------------------------------------
 # (bench command goes here)
+@app.command("bench")
+def bench_command(
+    json_path: str = typer.Option("benchmarks/results/rasterizer.json", "--json", help="Where to write the JSON results."),
+    repeats: int = typer.Option(3, help="Timed repeats per measurement (the median is reported)."),
+    backends: Optional[str] = typer.Option(None, help="Comma-separated subset of cuda,cpu,reference (default: all available)."),
+    quick: bool = typer.Option(False, "--quick", help="Only the 128x128 / 5k surfels scene."),
+) -> None:
+    """Benchmark the rasterizer backends (forward, forward+backward, pairs per second) and write a JSON report."""
+    import importlib.util
+
+    bench_file = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_rasterizer.py"
+    if not bench_file.is_file():
+        raise SplatzooError(f"{bench_file} not found: `splatzoo bench` runs from a source checkout of splatzoo")
+    spec = importlib.util.spec_from_file_location("splatzoo_bench_rasterizer", bench_file)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    configs = bench.CONFIGS[:1] if quick else bench.CONFIGS
+    bench.run_benchmark(backends=backends.split(",") if backends else None, configs=configs, repeats=repeats,
+                        json_path=json_path, echo=typer.echo)
+
 
 # --- training and evaluation (train, eval, render, compare) ---------------------------------------------
 # (training commands go here)
+def _scene_options(resolution: Optional[int], max_width: Optional[int], test_every: Optional[int],
+                   white_background: bool) -> dict:
+    opts = {}
+    if resolution is not None:
+        opts["resolution"] = resolution
+    if max_width is not None:
+        opts["max_width"] = max_width
+    if test_every is not None:
+        opts["test_every"] = test_every
+    if white_background:
+        opts["background"] = (1.0, 1.0, 1.0)
+    return opts
+
+
+_RESOLUTION = typer.Option(None, "--resolution", "-r", help="downscale images by 1, 2, 4 or 8")
+_MAX_WIDTH = typer.Option(None, "--max-width", help="downscale images to at most this width")
+_TEST_EVERY = typer.Option(None, "--test-every", help="every N-th image (sorted by name) is a test view; 0: none")
+_WHITE = typer.Option(False, "--white-background", help="composite RGBA images over white instead of black")
+_BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, reference, cpu or cuda")
+
+
+@app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def train_command(
+    ctx: typer.Context,
+    data: Path = typer.Argument(..., help="COLMAP folder (images/ + sparse/0/) or Blender folder (transforms_*.json)"),
+    model: str = typer.Option("gabor", "--model", "-m", help="model name (see `splatzoo models -v` for options)"),
+    iterations: int = typer.Option(30000, "--iterations", "-i", help="training iterations; the schedule scales with it"),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="run directory (default runs/<model>)"),
+    backend: str = _BACKEND,
+    resolution: Optional[int] = _RESOLUTION,
+    max_width: Optional[int] = _MAX_WIDTH,
+    test_every: Optional[int] = _TEST_EVERY,
+    white_background: bool = _WHITE,
+    densify: bool = typer.Option(True, "--densify/--no-densify", help="adaptive density control (2DGS schedule)"),
+    num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n",
+                                                 help="start from exactly N primitives (subsampled initial points)"),
+    max_primitives: Optional[int] = typer.Option(None, "--max-primitives", help="cap densification at N primitives"),
+    seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
+    resume: bool = typer.Option(False, "--resume", help="continue an interrupted run in --out"),
+    lambda_dist: float = typer.Option(0.0, "--lambda-dist", help="depth-distortion weight (2DGS default 0)"),
+    lambda_normal: float = typer.Option(0.05, "--lambda-normal", help="normal-consistency weight"),
+) -> None:
+    """Train a model on a dataset. Model options follow the model name, e.g. `--model gabor --n-waves 8`.
+
+    The fixed-count comparison of the paper: `--no-densify --num-primitives N`.
+    """
+    from .options import parse_model_args
+    from .training import TrainConfig, train
+
+    model_options = parse_model_args(model, list(ctx.args))
+    cfg = TrainConfig(iterations=iterations, backend=backend, seed=seed, densify=densify,
+                      num_primitives=num_primitives, max_primitives=max_primitives,
+                      lambda_dist=lambda_dist, lambda_normal=lambda_normal)
+    out = out or Path("runs") / model
+    result = train(data, model, model_options, cfg, out, resume=resume,
+                   scene_options=_scene_options(resolution, max_width, test_every, white_background))
+    m = result.metrics
+    if m:
+        typer.echo(f"{model}: PSNR {m['psnr']:.2f}  SSIM {m['ssim']:.4f}  LPIPS {m['lpips']:.4f}  "
+                   f"{m['num_primitives']} primitives  {m['fps']:.1f} FPS  -> {result.run_dir}")
+
+
+@app.command("eval")
+def eval_command(
+    run: Path = typer.Argument(..., help="run directory written by `splatzoo train`"),
+    backend: str = _BACKEND,
+    lpips_net: str = typer.Option("vgg", "--lpips-net", help="vgg or alex"),
+    lpips_convention: str = typer.Option("3dgs", "--lpips-convention",
+                                         help="3dgs ([0,1] inputs, as the paper's tables) or standard ([-1,1])"),
+) -> None:
+    """Evaluate a trained run on its test views; writes and prints metrics.json."""
+    import json
+
+    from .evaluate import evaluate_run
+
+    metrics = evaluate_run(run, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention)
+    typer.echo(json.dumps(metrics, indent=2))
+
+
+@app.command("render")
+def render_command(
+    run: Path = typer.Argument(..., help="run directory written by `splatzoo train`"),
+    split: str = typer.Option("test", "--split", help="test or train views"),
+    video: bool = typer.Option(False, "--video", help="also write an orbit video (renders/orbit.mp4)"),
+    frames: int = typer.Option(60, "--frames", help="frames of the orbit video"),
+    backend: str = _BACKEND,
+) -> None:
+    """Render a trained run's views to PNG (and an orbit video)."""
+    from .evaluate import render_run
+
+    paths = render_run(run, split=split, video=video, backend=backend, frames=frames)
+    typer.echo(f"wrote {len(paths)} files under {Path(run) / 'renders'}")
+
+
+@app.command("compare")
+def compare_command(
+    models: list[str] = typer.Argument(..., help="models to compare, e.g. gabor 2dgs (options: gabor:n_waves=8)"),
+    data: Optional[Path] = typer.Option(None, "--data", "-d", help="dataset (default: a built-in synthetic scene)"),
+    scene: str = typer.Option("sweater", "--scene", help="built-in synthetic scene when --data is not given"),
+    out: Path = typer.Option(Path("runs/compare"), "--out", "-o", help="output folder"),
+    iterations: Optional[int] = typer.Option(None, "--iterations", "-i", help="iterations per model (30000; quick 1500)"),
+    num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n", help="equal primitive count for all"),
+    densify: bool = typer.Option(False, "--densify/--no-densify", help="densify (off: the paper's fixed-count protocol)"),
+    quick: bool = typer.Option(False, "--quick", help="small scene and short schedule: a few minutes on 2 cores"),
+    seed: int = typer.Option(0, "--seed"),
+    backend: str = _BACKEND,
+    resolution: Optional[int] = _RESOLUTION,
+    max_width: Optional[int] = _MAX_WIDTH,
+    test_every: Optional[int] = _TEST_EVERY,
+    white_background: bool = _WHITE,
+) -> None:
+    """Train several models with identical data, initial points and budget; write compare.json, report.md,
+    compare.png and convergence.png. `splatzoo compare gabor baseline-a baseline-b baseline-c 2dgs` is the
+    paper's ablation."""
+    from .compare import compare
+
+    compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
+            seed=seed, backend=backend, synthetic_scene=scene,
+            scene_options=_scene_options(resolution, max_width, test_every, white_background))
+    typer.echo((out / "report.md").read_text())
+
+
+# --- mesh extraction and export (extract-mesh, export) -----------------------------------------------------
+# (mesh commands go here)
+@app.command("extract-mesh")
+def extract_mesh_command(
+    run: Path = typer.Argument(..., help="run directory written by `splatzoo train`"),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="mesh file to write (default RUN/mesh.ply)"),
+    voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="TSDF voxel size in world units "
+                                               "(default: max(depth_trunc/1024, one pixel at the object))"),
+    sdf_trunc: Optional[float] = typer.Option(None, "--sdf-trunc", help="TSDF truncation distance (default 5 voxels)"),
+    depth_trunc: Optional[float] = typer.Option(None, "--depth-trunc", help="ignore depth beyond this (default 2x the "
+                                                "camera distance to the look-at point)"),
+    depth: str = typer.Option("median", "--depth", help="median (sharp, 2DGS for objects) or expected depth"),
+    alpha_threshold: float = typer.Option(0.5, "--alpha-threshold", help="fuse only pixels at least this opaque"),
+    keep_largest: bool = typer.Option(False, "--keep-largest", help="keep only the largest connected component"),
+    backend: str = _BACKEND,
+) -> None:
+    """Extract a coloured triangle mesh: render depth from the training cameras and fuse it (TSDF)."""
+    from .mesh import extract_mesh_from_run
+
+    extract_mesh_from_run(run, out, backend=backend, progress=lambda msg: typer.echo(msg, err=True),
+                          voxel_size=voxel_size, sdf_trunc=sdf_trunc, depth_trunc=depth_trunc, depth=depth,
+                          alpha_threshold=alpha_threshold, keep_largest=keep_largest)
+
+
+@app.command("export")
+def export_command(
+    run: Path = typer.Argument(..., help="run directory written by `splatzoo train` (or a model .pt file)"),
+    out: Path = typer.Option(..., "--out", "-o", help="PLY file to write"),
+) -> None:
+    """Export a trained model as a binary PLY that 3DGS/2DGS tools read (Gabor waves as extra properties)."""
+    from .export import export_run
+
+    path = export_run(run, out)
+    typer.echo(f"wrote {path}")
 
 
 def main() -> None:

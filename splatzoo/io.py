@@ -22,6 +22,10 @@ def atomic_path(path, suffix: str = ""):
         raise SplatzooError(f"cannot write {path}: {e.strerror or e}. Choose a writable output location.") from e
     try:
         yield Path(tmp)
+        # mkstemp makes the file private (0600); give the result the permissions a plain open() would
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

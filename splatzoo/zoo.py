@@ -68,8 +68,7 @@ def model_from_checkpoint(ckpt: dict) -> SplatModel:
     config = spec.config_cls(**ckpt["config"])
     state = ckpt["state"]
     model = spec.cls(config, 0)
-    model.replace_parameters({k: state[k] for k, _ in model.named_parameters()})
-    model.load_state_dict(state, strict=False)
+    model.load_checkpoint_state(state)
     model.name = ckpt["model"]
     return model
 
@@ -83,8 +82,8 @@ def load_model(path) -> SplatModel:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise SplatzooError(f"cannot read model file {path}: {e}. Is it a splatzoo checkpoint?") from e
-    if "state" not in ckpt and "model_checkpoint" in ckpt:
-        ckpt = ckpt["model_checkpoint"]
+    if isinstance(ckpt, dict) and "state" not in ckpt and isinstance(ckpt.get("model"), dict):
+        ckpt = ckpt["model"]  # a training checkpoint: the model is one entry of it
     if not isinstance(ckpt, dict) or "state" not in ckpt:
         raise SplatzooError(f"{path} is not a splatzoo model file (no 'state' entry)")
     return model_from_checkpoint(ckpt)

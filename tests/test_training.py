@@ -114,3 +114,17 @@ def test_cli_train_eval_render_compare(tiny_data, tmp_path):
     assert "| gabor |" in text and "**" in text
     for png in ("compare.png", "convergence.png"):
         assert (out / png).stat().st_size > 10_000
+
+
+def test_checkpoint_loads_as_a_model_and_outputs_are_readable(tiny_data, tmp_path):
+    import os
+    import stat
+
+    from splatzoo import load_model
+
+    train(tiny_data, "gabor", {}, small_config(iterations=3), tmp_path / "r", progress=False, evaluate_at_end=False,
+          stop_after=2)
+    model = load_model(tmp_path / "r" / "checkpoint.pt")
+    assert model.name == "gabor" and model.num_primitives == 300
+    mode = stat.S_IMODE(os.stat(tmp_path / "r" / "config.json").st_mode)
+    assert mode & stat.S_IRGRP and mode & stat.S_IROTH

@@ -1,0 +1,294 @@
+"""Model export to binary PLY, the point-cloud layout that 3DGS/2DGS tools read, and back.
+
+One vertex per primitive, float32 properties, little endian:
+  x, y, z                      position (`means`)
+  nx, ny, nz                   surfel normal (third column of the rotation), for viewers; not read back
+  f_dc_0..2                    SH DC colour; for models without SH a preview of the mean colour, not read back
+  f_rest_*                     higher SH bands, channel-major as 3DGS writes them (all R, then G, then B)
+  opacity                      logit
+  scale_0, scale_1             log sigma (2DGS: two scales)
+  rot_0..3                     quaternion (w, x, y, z), unnormalised as trained
+  gabor_color_a_0..2, gabor_color_b_0..2, gabor_weight_*, gabor_freq_*, gabor_phase_*   Gabor-family waves
+  <param>_<i>                  any other per-primitive parameter of a plugin, flattened row-major
+Header comments name the splatzoo model and its config (`comment splatzoo model gabor`,
+`comment splatzoo config {"n_waves": 4}`), so `load_ply` rebuilds the same model. Parameters are stored exactly
+(float32 as trained), so a round trip renders identically. A PLY without those comments (written by 2DGS itself)
+loads as a `2dgs` model whose SH degree follows from the number of f_rest properties.
+
+numpy only: no plyfile dependency.
+"""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import SplatzooError
+from .io import atomic_path
+
+FORMAT_VERSION = 1
+
+# parameter name -> property prefix (or explicit names) of the standard layouts
+_FIXED = {"means": ["x", "y", "z"], "logit_opacity": ["opacity"]}
+_PREFIX = {"log_scales": "scale_", "quats": "rot_", "sh_dc": "f_dc_", "sh_rest": "f_rest_",
+           "color_a": "gabor_color_a_", "color_b": "gabor_color_b_", "wave_weights": "gabor_weight_",
+           "wave_freqs": "gabor_freq_", "wave_phases": "gabor_phase_"}
+_CHANNEL_MAJOR = {"sh_rest"}          # 3DGS stores SH bands transposed: [N, 3, bands]
+_DERIVED = ("nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2")  # written for viewers, recomputed on load
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def _property_names(name: str, trailing: tuple[int, ...]) -> list[str]:
+    """The PLY property names of a per-primitive parameter with shape [N, *trailing]."""
+    if name in _FIXED:
+        return list(_FIXED[name])
+    count = int(np.prod(trailing)) if trailing else 1
+    prefix = _PREFIX.get(name, re.sub(r"[^A-Za-z0-9_]", "_", name) + "_")
+    if not trailing and name not in _PREFIX:
+        return [prefix[:-1]]
+    return [f"{prefix}{i}" for i in range(count)]
+
+
+def _to_columns(name: str, value: torch.Tensor) -> np.ndarray:
+    """[N, *trailing] -> [N, count] in property order."""
+    a = value.detach().cpu().float().numpy()
+    if name in _CHANNEL_MAJOR and a.ndim == 3:
+        a = a.transpose(0, 2, 1)
+    return np.ascontiguousarray(a).reshape(a.shape[0], -1)
+
+
+def _from_columns(name: str, columns: np.ndarray, trailing: tuple[int, ...]) -> torch.Tensor:
+    n = columns.shape[0]
+    if name in _CHANNEL_MAJOR and len(trailing) == 2:
+        a = columns.reshape(n, trailing[1], trailing[0]).transpose(0, 2, 1)
+    else:
+        a = columns.reshape((n,) + tuple(trailing))
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+
+def _exportable_parameters(model) -> dict[str, torch.Tensor]:
+    """Per-primitive parameters by name; a clear error for what a per-vertex PLY cannot hold."""
+    model_name = getattr(model, "name", "") or type(model).__name__
+    params = dict(model.named_parameters())
+    per = model.per_primitive() if hasattr(model, "per_primitive") else params
+    if "means" not in per or tuple(per["means"].shape[1:]) != (3,):
+        raise SplatzooError(f"cannot export model {model_name!r} to PLY: it has no per-primitive `means` [N,3] "
+                            "parameter to use as vertex positions. Save it with splatzoo.save_model (.pt) instead")
+    n = per["means"].shape[0]
+    shared = [k for k in params if k not in per] + [k for k, v in per.items() if v.dim() == 0 or v.shape[0] != n]
+    buffers = [k for k in model.state_dict() if k not in params]  # persistent buffers: model-wide state
+    if shared or buffers:
+        raise SplatzooError(f"cannot export model {model_name!r} to PLY: {', '.join(sorted(set(shared + buffers)))} "
+                            f"{'is' if len(set(shared + buffers)) == 1 else 'are'} not per-primitive (a PLY stores one "
+                            "vertex per primitive). Save it with splatzoo.save_model (.pt) instead")
+    return per
+
+
+def _surfel_normals(per: dict[str, torch.Tensor]) -> np.ndarray:
+    q = per.get("quats")
+    if q is None or tuple(q.shape[1:]) != (4,):
+        return np.zeros((per["means"].shape[0], 3), np.float32)
+    from .geometry import quat_to_rotmat
+
+    with torch.no_grad():
+        return quat_to_rotmat(q.detach().float().cpu())[:, :, 2].numpy()
+
+
+def _preview_dc(model, per: dict[str, torch.Tensor]) -> np.ndarray:
+    """SH DC of each primitive's mean colour, so 2DGS viewers show something sensible for wave models."""
+    from .geometry import rgb_to_sh0
+    from .types import Camera
+
+    n = per["means"].shape[0]
+    try:
+        with torch.no_grad():
+            cam = Camera.look_at([0.0, 0.0, -1.0], [0.0, 0.0, 0.0], dtype=torch.float32)
+            base = model.surfels(cam.to(per["means"].device)).base_color.detach().float().cpu()
+        if tuple(base.shape) != (n, 3):
+            raise ValueError
+        return rgb_to_sh0(base.clamp(0, 1)).numpy()
+    except Exception:  # a plugin's colour needs more than a camera: grey is an honest preview
+        return np.zeros((n, 3), np.float32)
+
+
+def _config_dict(model) -> dict:
+    import dataclasses
+
+    cfg = getattr(model, "config", None)
+    return dataclasses.asdict(cfg) if cfg is not None and dataclasses.is_dataclass(cfg) else {}
+
+
+def save_ply(model, path) -> Path:
+    """Write `model` as a binary PLY (layout in the module docstring), atomically. Returns the path."""
+    from . import __version__
+
+    path = Path(path)
+    if path.is_dir():
+        raise SplatzooError(f"cannot write the PLY to {path}: it is a folder; give a file name such as {path / 'model.ply'}")
+    per = _exportable_parameters(model)
+    name = getattr(model, "name", "")
+    if not name:
+        raise SplatzooError(f"cannot export a {type(model).__name__} without a registry name; create it with "
+                            "splatzoo.create_model so that load_ply can rebuild it")
+    n = per["means"].shape[0]
+    columns: dict[str, np.ndarray] = {"x": None, "y": None, "z": None}  # order: 3DGS layout first
+    normals = _surfel_normals(per)
+    columns.update({"nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]})
+    if "sh_dc" not in per:
+        dc = _preview_dc(model, per)
+        columns.update({f"f_dc_{i}": dc[:, i] for i in range(3)})
+    order = ["means", "sh_dc", "sh_rest", "logit_opacity", "log_scales", "quats"]
+    order += [k for k in per if k not in order]
+    for pname in order:
+        if pname not in per:
+            continue
+        value = per[pname]
+        props = _property_names(pname, tuple(value.shape[1:]))
+        cols = _to_columns(pname, value)
+        if cols.shape[1] != len(props):
+            raise SplatzooError(f"parameter {pname!r} of shape {list(value.shape)} does not fit the PLY layout")
+        for i, prop in enumerate(props):
+            if prop in columns and columns[prop] is not None and prop not in _DERIVED:
+                raise SplatzooError(f"cannot export model {name!r}: parameters map to the PLY property {prop!r} twice; "
+                                    "rename the plugin parameter")
+            columns[prop] = cols[:, i]
+    arr = np.empty(n, dtype=[(k, "<f4") for k in columns])
+    for k, v in columns.items():
+        arr[k] = v
+    header = ["ply", "format binary_little_endian 1.0",
+              f"comment splatzoo {__version__} ply export, format {FORMAT_VERSION}",
+              f"comment splatzoo model {name}",
+              f"comment splatzoo config {json.dumps(_config_dict(model), separators=(',', ':'), default=str)}",
+              f"element vertex {n}"]
+    header += [f"property float {k}" for k in columns]
+    header.append("end_header")
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            f.write(arr.tobytes())
+    return path
+
+
+# --- reading ------------------------------------------------------------------------------------------------
+
+def read_ply_vertices(path) -> tuple[np.ndarray, list[str]]:
+    """(structured array of the first element's properties, header comments) of a binary or ASCII PLY."""
+    path = Path(path)
+    if not path.is_file():
+        raise SplatzooError(f"no PLY file at {path}; pass the file written by `splatzoo export`")
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise SplatzooError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
+    body_start = data.find(b"\n", end) + 1
+    lines = data[:end].decode("ascii", errors="replace").splitlines()
+    fmt, comments, elements = None, [], []
+    for line in lines[1:]:
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "format":
+            fmt = parts[1]
+        elif parts[0] == "comment":
+            comments.append(line[len("comment "):])
+        elif parts[0] == "element":
+            elements.append((parts[1], int(parts[2]), []))
+        elif parts[0] == "property":
+            if not elements:
+                raise SplatzooError(f"{path}: property before any element in the PLY header")
+            if parts[1] == "list":
+                elements[-1][2].append((parts[-1], None))
+            elif parts[1] not in _PLY_TYPES:
+                raise SplatzooError(f"{path}: unknown PLY property type {parts[1]!r}")
+            else:
+                elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
+    if not elements or elements[0][0] != "vertex":
+        raise SplatzooError(f"{path}: the first PLY element must be 'vertex' (one per primitive)")
+    _, count, props = elements[0]
+    if any(t is None for _, t in props):
+        raise SplatzooError(f"{path}: list properties in the vertex element are not supported")
+    if fmt == "ascii":
+        rows = data[body_start:].decode("ascii").split("\n")[:count]
+        values = np.array([[float(x) for x in r.split()[:len(props)]] for r in rows], dtype=np.float64)
+        arr = np.empty(count, dtype=[(k, t) for k, t in props])
+        for i, (k, _) in enumerate(props):
+            arr[k] = values[:, i] if count else []
+        return arr, comments
+    if fmt not in ("binary_little_endian", "binary_big_endian"):
+        raise SplatzooError(f"{path}: unsupported PLY format {fmt!r}")
+    endian = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(k, endian + t) for k, t in props])
+    if len(data) - body_start < dtype.itemsize * count:
+        raise SplatzooError(f"{path} is truncated: the header promises {count} vertices of {dtype.itemsize} bytes "
+                            f"but the file holds {len(data) - body_start} bytes after it. Export the model again")
+    return np.frombuffer(data, dtype=dtype, count=count, offset=body_start), comments
+
+
+def _infer_2dgs(names: list[str], path) -> tuple[str, dict]:
+    if "scale_2" in names:
+        raise SplatzooError(f"{path} looks like a 3DGS PLY (three scales); splatzoo models are 2D surfels with two "
+                            "(scale_0, scale_1). Only 2DGS or splatzoo PLY files can be loaded")
+    rest = sum(1 for k in names if k.startswith("f_rest_"))
+    degree = {0: 0, 9: 1, 24: 2, 45: 3}.get(rest)
+    if degree is None:
+        raise SplatzooError(f"{path}: {rest} f_rest properties match no SH degree (0, 9, 24 or 45 expected)")
+    return "2dgs", {"sh_degree": degree}
+
+
+def load_ply(path):
+    """Rebuild the model written by `save_ply` (or a 2DGS point_cloud.ply, as a `2dgs` model)."""
+    from .zoo import create_model
+
+    arr, comments = read_ply_vertices(path)
+    names = list(arr.dtype.names)
+    model_name, config = None, {}
+    for c in comments:
+        if c.startswith("splatzoo model "):
+            model_name = c[len("splatzoo model "):].strip()
+        elif c.startswith("splatzoo config "):
+            try:
+                config = json.loads(c[len("splatzoo config "):])
+            except json.JSONDecodeError as e:
+                raise SplatzooError(f"{path}: the 'splatzoo config' header comment is not valid JSON ({e})") from e
+    if model_name is None:
+        model_name, config = _infer_2dgs(names, path)
+    model = create_model(model_name, **config)   # no primitives yet: it tells each parameter's trailing shape
+    n = arr.shape[0]
+    per = _exportable_parameters(model)
+    new = {}
+    for pname, empty in per.items():
+        trailing = tuple(empty.shape[1:])
+        props = _property_names(pname, trailing)
+        missing = [p for p in props if p not in names]
+        if missing:
+            raise SplatzooError(f"{path} lacks the properties {', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} "
+                                f"of parameter {pname!r} of model {model_name!r} {config}; it was not written by "
+                                "`splatzoo export` for this model (or with another config)")
+        cols = np.stack([arr[p].astype(np.float32) for p in props], 1) if props else np.zeros((n, 0), np.float32)
+        new[pname] = _from_columns(pname, cols, trailing)
+    model.replace_parameters(new)
+    return model
+
+
+def export_run(run, out) -> Path:
+    """Export the trained model of a run directory (its model.pt), or a model .pt file, to the PLY `out`."""
+    from .zoo import load_model
+
+    run = Path(run)
+    if run.is_file():
+        model_path = run
+    elif run.is_dir():
+        model_path = run / "model.pt"
+        if not model_path.is_file():
+            hint = (" (training was interrupted: finish it with `splatzoo train ... --resume`)"
+                    if (run / "checkpoint.pt").exists() else "; pass the --out folder of `splatzoo train`")
+            raise SplatzooError(f"{run} has no trained model (model.pt){hint}")
+    else:
+        raise SplatzooError(f"{run} does not exist; pass a run directory written by `splatzoo train` or a model .pt")
+    return save_ply(load_model(model_path), out)
