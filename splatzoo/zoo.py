@@ -68,7 +68,8 @@ def model_from_checkpoint(ckpt: dict) -> SplatModel:
     config = spec.config_cls(**ckpt["config"])
     state = ckpt["state"]
     model = spec.cls(config, 0)
-    model.load_checkpoint_state(state)
+    model.replace_parameters({k: state[k] for k, _ in model.named_parameters()})
+    model.load_state_dict(state, strict=False)
     model.name = ckpt["model"]
     return model
 
