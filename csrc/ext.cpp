@@ -3,6 +3,7 @@
 #include <torch/extension.h>
 
 #include <climits>
+#include <optional>
 
 #include "rasterize.h"
 #include "surfel_math.h"
@@ -18,12 +19,13 @@ using at::Tensor;
 // Inputs in the order of the Python call; all [M,...] of one floating dtype on one device.
 struct Inputs {
     Tensor T, center, depth, normal, opac, base, wv, wp, wa, boxes;
+    Tensor wc;  // int32 [M] waves in use per surfel, or undefined: all K
     int64_t M, K, W, H;
 };
 
 Inputs check_inputs(const Tensor& T, const Tensor& center, const Tensor& depth, const Tensor& normal,
                     const Tensor& opac, const Tensor& base, const Tensor& wv, const Tensor& wp, const Tensor& wa,
-                    const Tensor& boxes, int64_t W, int64_t H) {
+                    const Tensor& boxes, int64_t W, int64_t H, const std::optional<Tensor>& wave_counts) {
     const int64_t M = T.size(0);
     const int64_t K = wv.dim() == 3 ? wv.size(1) : -1;
     auto want = [&](const Tensor& t, std::vector<int64_t> shape, const char* name) {
@@ -47,8 +49,20 @@ Inputs check_inputs(const Tensor& T, const Tensor& center, const Tensor& depth, 
     want(wp, {M, K}, "wave_phases");
     want(wa, {M, K, 3}, "wave_amplitudes");
     want(boxes, {M, 4}, "boxes");
+    Tensor wc;
+    if (wave_counts.has_value() && wave_counts->defined()) {
+        wc = *wave_counts;
+        TORCH_CHECK(wc.scalar_type() == at::kInt && wc.device() == T.device() && wc.sizes().vec() == std::vector<int64_t>{M},
+                    "splatzoo native rasterizer: wave_counts must be int32 [", M, "] on ", T.device(), ", got ",
+                    wc.scalar_type(), " ", wc.sizes(), " on ", wc.device());
+        wc = wc.contiguous();
+        if (M > 0 && wc.device().is_cpu()) {  // an out-of-range count would read past the surfel's row
+            TORCH_CHECK(wc.min().item<int>() >= 0 && wc.max().item<int>() <= K,
+                        "splatzoo native rasterizer: wave_counts must lie in [0, K=", K, "]");
+        }
+    }
     return {T.contiguous(), center.contiguous(), depth.contiguous(), normal.contiguous(), opac.contiguous(),
-            base.contiguous(), wv.contiguous(), wp.contiguous(), wa.contiguous(), boxes.contiguous(), M, K, W, H};
+            base.contiguous(), wv.contiguous(), wp.contiguous(), wa.contiguous(), boxes.contiguous(), wc, M, K, W, H};
 }
 
 template <class S>
@@ -56,7 +70,7 @@ sz::SurfelArgs<S> surfel_args(const Inputs& in) {
     return {int(in.M), int(in.K), int(in.W), int(in.H),
             in.T.data_ptr<S>(), in.center.data_ptr<S>(), in.depth.data_ptr<S>(), in.normal.data_ptr<S>(),
             in.opac.data_ptr<S>(), in.base.data_ptr<S>(), in.wv.data_ptr<S>(), in.wp.data_ptr<S>(),
-            in.wa.data_ptr<S>(), in.boxes.data_ptr<S>()};
+            in.wa.data_ptr<S>(), in.boxes.data_ptr<S>(), in.wc.defined() ? in.wc.data_ptr<int>() : nullptr};
 }
 
 // Outputs and saved state, in the order returned to Python.
@@ -154,11 +168,12 @@ std::vector<Tensor> forward_cuda(const Inputs& in) {
 #endif
 
 // forward(T, center_px, depth, normal, opacities, base_color, wave_vectors, wave_phases, wave_amplitudes, boxes,
-//         width, height) -> [rgb, alpha, depth, median_depth, normal, distortion, *saved]
+//         width, height, wave_counts=None) -> [rgb, alpha, depth, median_depth, normal, distortion, *saved]
 std::vector<Tensor> forward(const Tensor& T, const Tensor& center, const Tensor& depth, const Tensor& normal,
                             const Tensor& opac, const Tensor& base, const Tensor& wv, const Tensor& wp,
-                            const Tensor& wa, const Tensor& boxes, int64_t W, int64_t H) {
-    Inputs in = check_inputs(T, center, depth, normal, opac, base, wv, wp, wa, boxes, W, H);
+                            const Tensor& wa, const Tensor& boxes, int64_t W, int64_t H,
+                            const std::optional<Tensor>& wave_counts) {
+    Inputs in = check_inputs(T, center, depth, normal, opac, base, wv, wp, wa, boxes, W, H, wave_counts);
     if (T.is_cuda()) {
 #ifdef SPLATZOO_WITH_CUDA
         return forward_cuda(in);
@@ -170,13 +185,14 @@ std::vector<Tensor> forward(const Tensor& T, const Tensor& center, const Tensor&
     return forward_cpu(in);
 }
 
-// backward(inputs..., width, height, saved (10 tensors from forward, S_TFINAL..), grads of the 6 outputs)
+// backward(inputs..., width, height, saved (10 tensors from forward, S_TFINAL..), grads of the 6 outputs,
+//          wave_counts=None) (gradients of waves a surfel does not use are 0)
 // -> [v_T, v_center, v_depth, v_normal, v_opacities, v_base, v_wave_vectors, v_wave_phases, v_wave_amplitudes]
 std::vector<Tensor> backward(const Tensor& T, const Tensor& center, const Tensor& depth, const Tensor& normal,
                              const Tensor& opac, const Tensor& base, const Tensor& wv, const Tensor& wp,
                              const Tensor& wa, const Tensor& boxes, int64_t W, int64_t H, std::vector<Tensor> outs,
-                             std::vector<Tensor> grads) {
-    Inputs in = check_inputs(T, center, depth, normal, opac, base, wv, wp, wa, boxes, W, H);
+                             std::vector<Tensor> grads, const std::optional<Tensor>& wave_counts) {
+    Inputs in = check_inputs(T, center, depth, normal, opac, base, wv, wp, wa, boxes, W, H, wave_counts);
     TORCH_CHECK(int(outs.size()) == N_OUT && grads.size() == 6, "splatzoo native rasterizer: backward got ",
                 outs.size(), " saved tensors and ", grads.size(), " gradients");
     for (auto& g : grads) g = g.to(T.scalar_type()).contiguous();
@@ -217,8 +233,15 @@ std::vector<Tensor> backward(const Tensor& T, const Tensor& center, const Tensor
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "splatzoo native tile rasterizer (surfels with per-surfel wave colour)";
-    m.def("forward", &forward, "Rasterize depth-sorted visible surfels; returns outputs and saved state");
-    m.def("backward", &backward, "Gradients of the per-surfel inputs");
+    namespace py = pybind11;
+    m.def("forward", &forward, "Rasterize depth-sorted visible surfels; returns outputs and saved state", py::arg("T"),
+          py::arg("center_px"), py::arg("depth"), py::arg("normal"), py::arg("opacities"), py::arg("base_color"),
+          py::arg("wave_vectors"), py::arg("wave_phases"), py::arg("wave_amplitudes"), py::arg("boxes"),
+          py::arg("width"), py::arg("height"), py::arg("wave_counts") = py::none());
+    m.def("backward", &backward, "Gradients of the per-surfel inputs", py::arg("T"), py::arg("center_px"),
+          py::arg("depth"), py::arg("normal"), py::arg("opacities"), py::arg("base_color"), py::arg("wave_vectors"),
+          py::arg("wave_phases"), py::arg("wave_amplitudes"), py::arg("boxes"), py::arg("width"), py::arg("height"),
+          py::arg("outs"), py::arg("grads"), py::arg("wave_counts") = py::none());
     m.attr("GEOM") = sz::GEOM;
     m.attr("N_OUTPUTS") = int(N_OUT);
     m.attr("NEAR") = sz::NEAR;

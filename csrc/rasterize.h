@@ -22,6 +22,9 @@ struct SurfelArgs {
     const S* wp;      // [M,K]
     const S* wa;      // [M,K,3]
     const S* boxes;   // [M,4] exact screen box (xmin, ymin, xmax, ymax), common.screen_boxes
+    // [M] waves in use per surfel (its first wcount[i] of K), or nullptr for all K. The tile loops run the wave
+    // loops to k < wcount[i], so removed waves cost nothing; the row stride stays K.
+    const int* wcount;
 };
 
 template <class S>

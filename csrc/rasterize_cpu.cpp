@@ -159,6 +159,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                 const S* wv = s.wv + 2 * K * int64_t(i);
                 const S* wp = s.wp + K * int64_t(i);
                 const S* wa = s.wa + 3 * K * int64_t(i);
+                const int Ki = s.wcount ? s.wcount[i] : K;
                 const int rel = pos - start;
                 for (int r = r0; r <= r1; ++r)
                     for (int c = c0; c <= c1; ++c) {
@@ -166,7 +167,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                         const S a = sc.alpha[p];
                         if (a == S(0) || px[p].done) continue;
                         S col[3], pre[3];
-                        wave_color(base, wv, wp, wa, K, sc.u[p], sc.v[p], col, pre);
+                        wave_color(base, wv, wp, wa, Ki, sc.u[p], sc.v[p], col, pre);
                         blend_forward(px[p], a, sc.z[p], col, n, rel);
                         active -= px[p].done;
                     }
@@ -240,6 +241,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                 const S* wv = s.wv + 2 * K * int64_t(i);
                 const S* wp = s.wp + K * int64_t(i);
                 const S* wa = s.wa + 3 * K * int64_t(i);
+                const int Ki = s.wcount ? s.wcount[i] : K;
                 const int rel = pos - start;
                 RowAcc<S> acc{row};
                 for (int r = r0; r <= r1; ++r)
@@ -254,7 +256,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                         e.u = sc.u[p];
                         e.v = sc.v[p];
                         e.z = sc.z[p];
-                        blend_backward(px[p], gm, e, n, base, wv, wp, wa, K, rel, acc);
+                        blend_backward(px[p], gm, e, n, base, wv, wp, wa, Ki, rel, acc);
                     }
             }
         }

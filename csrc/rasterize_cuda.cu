@@ -83,7 +83,8 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
             if (e.alpha == S(0)) continue;
             const int64_t i = sh.id[j];
             S col[3], pre[3];
-            wave_color(s.base + 3 * i, s.wv + 2 * s.K * i, s.wp + s.K * i, s.wa + 3 * s.K * i, s.K, e.u, e.v, col, pre);
+            wave_color(s.base + 3 * i, s.wv + 2 * s.K * i, s.wp + s.K * i, s.wa + 3 * s.K * i, (s.wcount ? s.wcount[i] : s.K), e.u, e.v,
+                       col, pre);
             blend_forward(p, e.alpha, e.z, col, s.normal + 3 * i, base + j - start);
         }
     }
@@ -145,7 +146,7 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
             const int64_t i = sh.id[j];
             AtomicAcc<S> acc{gbuf + i * GW};
             blend_backward(p, sh.g[j], e, s.normal + 3 * i, s.base + 3 * i, s.wv + 2 * s.K * i, s.wp + s.K * i,
-                           s.wa + 3 * s.K * i, s.K, rel, acc);
+                           s.wa + 3 * s.K * i, (s.wcount ? s.wcount[i] : s.K), rel, acc);
         }
     }
 }

@@ -104,6 +104,9 @@ class Surfels:
     means [N,3], quats [N,4] (w,x,y,z; need not be normalised), scales [N,2] (linear sigma along u, v),
     opacities [N] in [0,1], base_color [N,3] (view-evaluated), wave_vectors [N,K,2] (radians per sigma),
     wave_phases [N,K] (radians), wave_amplitudes [N,K,3].
+    wave_counts [N] integer or None: surfel i uses only its first wave_counts[i] waves; the others give no colour
+    and no gradient, and the native rasterizers skip them (None: all K waves are used). Models with a per-surfel
+    number of waves pack the active ones to the front.
     """
 
     means: torch.Tensor
@@ -114,6 +117,7 @@ class Surfels:
     wave_vectors: torch.Tensor
     wave_phases: torch.Tensor
     wave_amplitudes: torch.Tensor
+    wave_counts: torch.Tensor | None = None
 
     @property
     def num(self) -> int:
@@ -136,16 +140,22 @@ class Surfels:
         return Surfels(means, quats, scales, opacities, colors, e(n, 0, 2), e(n, 0), e(n, 0, 3))
 
     def tensors(self) -> dict[str, torch.Tensor]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """The eight floating-point (differentiable) fields; wave_counts is not among them."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "wave_counts"}
 
-    def map(self, fn) -> "Surfels":
-        return Surfels(**{k: fn(v) for k, v in self.tensors().items()})
+    def map(self, fn, counts_fn=None) -> "Surfels":
+        """Apply `fn` to the floating-point fields; wave_counts goes through `counts_fn` (kept as is if None)."""
+        counts = self.wave_counts
+        if counts is not None and counts_fn is not None:
+            counts = counts_fn(counts)
+        return Surfels(**{k: fn(v) for k, v in self.tensors().items()}, wave_counts=counts)
 
     def to(self, device=None, dtype=None) -> "Surfels":
-        return self.map(lambda t: t.to(device=device, dtype=dtype))
+        # counts move with the surfels but stay integers
+        return self.map(lambda t: t.to(device=device, dtype=dtype), lambda c: c.to(device=device))
 
     def index(self, idx) -> "Surfels":
-        return self.map(lambda t: t[idx])
+        return self.map(lambda t: t[idx], lambda c: c[idx])
 
     def validate(self) -> "Surfels":
         """Check shapes, dtypes and finiteness; raise ShapeError naming the field."""
@@ -167,6 +177,17 @@ class Surfels:
                 raise ShapeError(f"Surfels.{name} is {v.dtype} on {v.device}; every field must be {dtype} on {device}")
             if not torch.isfinite(v).all():
                 raise ShapeError(f"Surfels.{name} contains NaN or Inf values; check the model parameters that produced it")
+        c = self.wave_counts
+        if c is not None:
+            if not isinstance(c, torch.Tensor) or c.is_floating_point() or c.is_complex() or c.dtype == torch.bool:
+                raise ShapeError("Surfels.wave_counts must be an integer tensor [N] (or None for all K waves), got "
+                                 f"{c.dtype if isinstance(c, torch.Tensor) else type(c).__name__}")
+            if tuple(c.shape) != (n,) or c.device != device:
+                raise ShapeError(f"Surfels.wave_counts must have shape [N] (N={n}) on {device}, got {list(c.shape)} "
+                                 f"on {c.device}")
+            if n and (int(c.min()) < 0 or int(c.max()) > k):
+                raise ShapeError(f"Surfels.wave_counts must lie in [0, K={k}], got values in [{int(c.min())}, "
+                                 f"{int(c.max())}]")
         return self
 
 

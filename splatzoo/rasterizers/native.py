@@ -176,9 +176,10 @@ class _RasterizeFn(torch.autograd.Function):
     """Per-surfel tensors (visible, front to back) -> the six image outputs, with the hand-written backward."""
 
     @staticmethod
-    def forward(ctx, C, width, height, T, center, depth, normal, opac, base, wv, wp, wa, boxes):
-        out = C.forward(T, center, depth, normal, opac, base, wv, wp, wa, boxes, width, height)
-        ctx.C, ctx.size = C, (width, height)
+    def forward(ctx, C, width, height, T, center, depth, normal, opac, base, wv, wp, wa, boxes, wave_counts=None):
+        # wave_counts: int32 [M] or None (all K waves); it is not differentiable
+        out = C.forward(T, center, depth, normal, opac, base, wv, wp, wa, boxes, width, height, wave_counts)
+        ctx.C, ctx.size, ctx.wave_counts = C, (width, height), wave_counts
         ctx.save_for_backward(T, center, depth, normal, opac, base, wv, wp, wa, boxes, *out)
         saved = out[_N_PUBLIC:]
         ctx.mark_non_differentiable(*saved)
@@ -189,8 +190,8 @@ class _RasterizeFn(torch.autograd.Function):
         t = ctx.saved_tensors
         inputs, outs = t[:10], list(t[10:])
         g = [torch.zeros_like(o) if gr is None else gr for gr, o in zip(grads, outs[:_N_PUBLIC])]
-        v = ctx.C.backward(*inputs, ctx.size[0], ctx.size[1], outs, g)
-        return (None, None, None, *v, None)
+        v = ctx.C.backward(*inputs, ctx.size[0], ctx.size[1], outs, g, ctx.wave_counts)
+        return (None, None, None, *v, None, None)
 
 
 def rasterize_native(surfels: Surfels, camera: Camera, background=None, *, device_kind: str = "cpu") -> RenderOutput:
@@ -220,9 +221,10 @@ def rasterize_native(surfels: Surfels, camera: Camera, background=None, *, devic
         rgb = z(H, W, 3) + tie + bg
         return RenderOutput(rgb=rgb, alpha=z(H, W), depth=z(H, W), median_depth=z(H, W), normal=z(H, W, 3),
                             distortion=z(H, W))
+    counts = None if s.wave_counts is None else s.wave_counts[order].to(torch.int32).contiguous()
     rgb, alpha, depth, median, normal, dist = _RasterizeFn.apply(
         C, W, H, proj.T[order], proj.center_px[order], proj.depth[order], proj.normal[order],
         s.opacities[order], s.base_color[order], s.wave_vectors[order], s.wave_phases[order],
-        s.wave_amplitudes[order], proj.boxes[order].detach())
+        s.wave_amplitudes[order], proj.boxes[order].detach(), counts)
     rgb = rgb + (1 - alpha)[..., None] * bg
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist)

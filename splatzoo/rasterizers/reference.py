@@ -142,5 +142,11 @@ def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor)
         return torch.clamp(base.expand(u.shape[0], -1, -1), min=0)
     k = s.wave_vectors[idx]  # [n,K,2]
     phase = u[..., None] * k[:, :, 0] + v[..., None] * k[:, :, 1] + s.wave_phases[idx]  # [P,n,K]
-    color = base + torch.einsum("pnk,nkc->pnc", torch.cos(phase), s.wave_amplitudes[idx])
+    amp = s.wave_amplitudes[idx]  # [n,K,3]
+    if s.wave_counts is not None:
+        # waves at index >= wave_counts[i] do not exist: zero amplitude, and torch.where also blocks every gradient
+        # into them (their phase's only path to the colour is through the zeroed amplitude)
+        on = torch.arange(s.num_waves, device=amp.device) < s.wave_counts[idx][:, None]
+        amp = torch.where(on[..., None], amp, torch.zeros_like(amp))
+    color = base + torch.einsum("pnk,nkc->pnc", torch.cos(phase), amp)
     return torch.clamp(color, min=0)
