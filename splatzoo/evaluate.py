@@ -75,6 +75,7 @@ def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None
         "fps": measure_fps(model, [v.camera for v in views], scene.background, backend),
         "train_seconds": train_seconds, "num_primitives": model.num_primitives, "size_bytes": model.size_bytes(),
         "iterations": iterations, "model": model.name, "backend": backend, "split": used, "views": len(views),
+        **(model.summary() if hasattr(model, "summary") else {}),
         "resolution": [views[0].camera.width, views[0].camera.height] if views else None,
         "conventions": {"psnr": "mean of per-image PSNR", "ssim": "3DGS: 11x11 Gaussian, sigma 1.5, zero padding",
                         "lpips": f"v0.1 {lpips_net}, {lpips_convention} input convention"},

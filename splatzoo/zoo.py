@@ -68,8 +68,7 @@ def model_from_checkpoint(ckpt: dict) -> SplatModel:
     config = spec.config_cls(**ckpt["config"])
     state = ckpt["state"]
     model = spec.cls(config, 0)
-    model.replace_parameters({k: state[k] for k, _ in model.named_parameters()})
-    model.load_state_dict(state, strict=False)
+    model.load_checkpoint_state(state)
     model.name = ckpt["model"]
     return model
 

@@ -1,5 +1,6 @@
 """PLY export: the 3DGS/2DGS layout, exact round trips for every built-in model, plugins, errors, CLI."""
 import json
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,7 +83,9 @@ def test_gabor_layout_names_its_waves(tmp_path):
                           ("gabor_phase_", 3)):
         assert [n for n in names if n.startswith(prefix)] == [f"{prefix}{i}" for i in range(count)]
     assert {"opacity", "scale_0", "scale_1", "rot_3"} <= set(names)
-    assert "splatzoo model gabor" in comments and 'splatzoo config {"n_waves":3}' in comments
+    assert "splatzoo model gabor" in comments
+    config = [c for c in comments if c.startswith("splatzoo config ")]
+    assert len(config) == 1 and json.loads(config[0][len("splatzoo config "):]) == dataclasses.asdict(model.config)
     assert np.array_equal(arr["gabor_freq_2"], model.wave_freqs[:, 2].detach().numpy())
     # f_dc previews the mean colour (for 2DGS viewers); it is not read back
     c0 = model.surfels(CAM).base_color.detach().clamp(0, 1).numpy()

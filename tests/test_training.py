@@ -48,7 +48,7 @@ def test_training_raises_test_psnr(tiny_data, tmp_path):
     assert m["psnr"] > initial + 3.0, (initial, m["psnr"])
     assert (tmp_path / "run" / "renders" / "test").is_dir()
     cfg = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert cfg["model_config"] == {"n_waves": 4} and cfg["train"]["iterations"] == 150
+    assert cfg["model_config"]["n_waves"] == 4 and cfg["train"]["iterations"] == 150
 
 
 @pytest.mark.parametrize("model", ["gabor", "2dgs"])

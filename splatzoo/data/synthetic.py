@@ -246,6 +246,7 @@ class SceneSpec:
     distance: float
     elevation: tuple[float, float]         # degrees above the horizon, first to last view
     fov_deg: float = 40.0
+    specular: float = 0.0                  # strength of a view-dependent Blinn-Phong highlight (0: Lambertian only)
 
 
 SCENES: dict[str, SceneSpec] = {s.name: s for s in [
@@ -259,7 +260,11 @@ SCENES: dict[str, SceneSpec] = {s.name: s for s in [
               _boots, (0, 0, 0.25), 2.9, (18, 65)),
     SceneSpec("plain", "the sweater geometry with smooth low-frequency colour (a control scene)",
               lambda: _garment(plain_texture, "smooth", True), (0, 0, 0), 2.8, (-20, 55)),
+    SceneSpec("sweater-specular", "the sweater with a white view-dependent highlight (tests view-dependent colour)",
+              lambda: _garment(sweater_texture, "knit stripes", True), (0, 0, 0), 2.8, (-20, 55), specular=0.6),
 ]}
+
+SPECULAR_SHININESS = 12.0  # broad highlights: a few surfels wide at 128 px, so SH of low degree can follow them
 
 
 def list_scenes() -> dict[str, str]:
@@ -362,8 +367,11 @@ class MeshScene:
         out = self.scene.cast_rays(self._o3d.core.Tensor(rays))
         return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs")}
 
-    def shade(self, prim: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Colour [N,3] of hits given triangle ids [N] and open3d barycentrics [N,2] (weights of v1, v2)."""
+    def shade(self, prim: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray | None = None,
+              specular: float = 0.0) -> np.ndarray:
+        """Colour [N,3] of hits given triangle ids [N] and open3d barycentrics [N,2] (weights of v1, v2).
+        With `specular` > 0 and the rays' directions [N,3], a white Blinn-Phong highlight of the fixed lights is
+        added: the only view-dependent term of any scene."""
         w = np.empty((len(prim), 3), dtype=np.float32)
         w[:, 1:] = bary
         w[:, 0] = 1 - bary[:, 0] - bary[:, 1]
@@ -378,7 +386,17 @@ class MeshScene:
                 sel = np.nonzero(tex == i)[0]
                 if len(sel):
                     albedo[sel] = t(uv[sel])
-        return np.clip(albedo * light[:, None], 0, 1)
+        rgb = albedo * light[:, None]
+        if specular > 0 and view_dirs is not None:
+            n = np.einsum("nkc,nk->nc", self.normals[self.triangles[prim]], w)
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+            to_eye = -view_dirs / np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
+            n *= np.sign(np.sum(n * to_eye, 1, keepdims=True) + 1e-12)  # the side the ray sees
+            for d, power in LIGHTS:
+                h = to_eye + (d / np.linalg.norm(d)).astype(np.float32)
+                h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+                rgb += (specular * power * np.clip(np.sum(n * h, 1), 0, None) ** SPECULAR_SHININESS)[:, None]
+        return np.clip(rgb, 0, 1)
 
     def albedo_at_vertices(self) -> np.ndarray:
         out = np.zeros((len(self.vertices), 3), dtype=np.float32)
@@ -401,7 +419,7 @@ def _camera_rays(cam: Camera, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarra
 
 
 def render_view(mesh: MeshScene, cam: Camera, supersample: int = SUPERSAMPLE,
-                background=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+                background=(0.0, 0.0, 0.0), specular: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Exact render: float32 RGB [H,W,3] and coverage [H,W], averaging supersample^2 rays per pixel."""
     s = supersample
     W, H = cam.width, cam.height
@@ -417,7 +435,7 @@ def render_view(mesh: MeshScene, cam: Camera, supersample: int = SUPERSAMPLE,
     hit = mesh.cast(o, d)
     ok = np.isfinite(hit["t_hit"])
     rgb = np.broadcast_to(np.asarray(background, dtype=np.float32), (len(ok), 3)).copy()
-    rgb[ok] = mesh.shade(hit["primitive_ids"][ok].astype(np.int64), hit["primitive_uvs"][ok])
+    rgb[ok] = mesh.shade(hit["primitive_ids"][ok].astype(np.int64), hit["primitive_uvs"][ok], d[ok], specular)
     rgb = rgb.reshape(H, W, s * s, 3).mean(2)
     cov = ok.astype(np.float32).reshape(H, W, s * s).mean(2)
     return rgb, cov
@@ -537,7 +555,7 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
         for i, cam in enumerate(cams):
-            rgb, cov = render_view(mesh, cam, supersample)
+            rgb, cov = render_view(mesh, cam, supersample, specular=spec.specular)
             _write_png(tmp / "images" / cam.name, rgb)
             _write_png(tmp / "masks" / cam.name, cov)
             if (i + 1) % 8 == 0 or i + 1 == len(cams):

@@ -38,6 +38,9 @@ class SplatModel(nn.Module):
     dimension num_primitives, initialise them in `init_from_points`, and implement `surfels(camera)`."""
 
     name: str = ""  # set from the registry spec when created through create_model
+    # names of integer buffers with one row per primitive (e.g. per-surfel wave counts): densification edits
+    # them with the parameters; they are not trained
+    primitive_buffers: tuple[str, ...] = ()
 
     def __init__(self, config: Any, num_primitives: int = 0):
         super().__init__()
@@ -62,18 +65,61 @@ class SplatModel(nn.Module):
     def num_primitives(self) -> int:
         return next(iter(self.per_primitive().values())).shape[0]
 
-    def per_primitive(self) -> dict[str, nn.Parameter]:
-        """Trainable tensors whose first dimension indexes primitives (what densification edits)."""
-        return dict(self.named_parameters())
+    def per_primitive(self) -> dict[str, torch.Tensor]:
+        """Tensors whose first dimension indexes primitives (what densification edits): the trainable parameters,
+        then the buffers named in `primitive_buffers`."""
+        out: dict[str, torch.Tensor] = dict(self.named_parameters())
+        for name in self.primitive_buffers:
+            buf = getattr(self, name, None)
+            if isinstance(buf, torch.Tensor):
+                out[name] = buf
+        return out
 
     def replace_parameters(self, new: dict[str, torch.Tensor]) -> None:
-        """Swap per-primitive parameters for tensors with a new primitive count (densify, load)."""
+        """Swap per-primitive parameters (and primitive buffers) for tensors with a new primitive count
+        (densify, load)."""
         for name, value in new.items():
-            setattr(self, name, nn.Parameter(value.detach().clone().requires_grad_(True)))
+            if name in self.primitive_buffers:
+                old = getattr(self, name)
+                value = value.detach()
+                if value.is_floating_point() and not old.is_floating_point():
+                    value = value.round()  # e.g. read back from a float PLY column
+                self.register_buffer(name, value.to(old.dtype).clone(), persistent=False)
+            else:
+                setattr(self, name, nn.Parameter(value.detach().clone().requires_grad_(True)))
+
+    def swap_parameter(self, name: str, fn, optimizer: torch.optim.Optimizer | None = None) -> None:
+        """Replace parameter `name` by fn(parameter) (any shape), applying fn to its Adam moments too, and point
+        the optimizer at the new tensor. For edits along dimensions other than the primitive one."""
+        old = getattr(self, name)
+        new = nn.Parameter(fn(old.detach()).clone().requires_grad_(True))
+        setattr(self, name, new)
+        if optimizer is None:
+            return
+        for group in optimizer.param_groups:
+            for i, p in enumerate(group["params"]):
+                if p is old:
+                    group["params"][i] = new
+                    state = optimizer.state.pop(old, None)
+                    if state:
+                        for key in ("exp_avg", "exp_avg_sq"):
+                            if key in state and state[key].shape == old.shape:
+                                state[key] = fn(state[key])
+                        optimizer.state[new] = state
 
     def size_bytes(self) -> int:
         """Bytes of stored parameters (float32)."""
         return sum(p.numel() for p in self.parameters()) * 4
+
+    def summary(self) -> dict:
+        """Model-specific numbers worth reporting next to the metrics (e.g. active waves); {} by default."""
+        return {}
+
+    def on_step(self, step: int, train_config: Any, optimizer: torch.optim.Optimizer) -> dict | None:
+        """Called by the trainer after every optimiser step (and after densification), with the run's TrainConfig.
+        A model may edit itself here (e.g. drop unused waves); it must then keep `optimizer` pointing at its
+        parameters (see swap_parameter). No-op by default."""
+        return None
 
     @classmethod
     def from_points(cls, config, points: torch.Tensor, colors: torch.Tensor, *, seed: int = 0) -> "SplatModel":
@@ -96,6 +142,11 @@ class SplatModel(nn.Module):
     def checkpoint(self) -> dict:
         return {"model": self.name, "config": dataclasses.asdict(self.config),
                 "state": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
+
+    def load_checkpoint_state(self, state: dict) -> None:
+        """Inverse of checkpoint()["state"] on a model built with 0 primitives."""
+        self.replace_parameters({k: state[k] for k, _ in self.named_parameters()})
+        self.load_state_dict(state, strict=False)
 
 
 class SurfelModel(SplatModel):

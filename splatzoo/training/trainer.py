@@ -238,6 +238,7 @@ def train(scene, model: str = "gabor", model_options: dict | None = None, config
                                       max_primitives=cfg.max_primitives)
                 if step % reset_every == 0:
                     reset_opacity(net, optimizer)
+            net.on_step(step, cfg, optimizer)  # model-specific edits (e.g. adaptive waves); no-op by default
             train_seconds += time.perf_counter() - t0
             lv = loss.item()
             ema = lv if ema is None else 0.9 * ema + 0.1 * lv
@@ -245,7 +246,8 @@ def train(scene, model: str = "gabor", model_options: dict | None = None, config
                 mse = ((render.rgb.detach() - target) ** 2).mean().item()
                 log.write(json.dumps({"iteration": step, "loss": lv, "photo": l_photo.item(),
                                       "train_psnr": -10 * math.log10(max(mse, 1e-10)),
-                                      "num_primitives": net.num_primitives, "seconds": round(train_seconds, 3)}) + "\n")
+                                      "num_primitives": net.num_primitives, "seconds": round(train_seconds, 3),
+                                      **net.summary()}) + "\n")
             if scene.test and (step % cfg.eval_interval == 0 or step == cfg.iterations):
                 log.write(json.dumps({"iteration": step, "test_psnr": test_psnr(net, scene, backend)}) + "\n")
             log.flush()

@@ -1,0 +1,195 @@
+"""Adaptive waves: the Surfels.wave_counts contract, wave pruning in the gabor model, its packed checkpoint,
+densification with pruned waves, the trainer hook, and view-dependent (SH) colour for the gabor family."""
+import json
+
+import pytest
+import torch
+
+import splatzoo
+from scenes import random_scene
+from splatzoo import Camera, Surfels, rasterize
+from splatzoo.errors import ShapeError
+from splatzoo.rasterizers.reference import rasterize_reference
+from splatzoo.training.densify import DensifyStats, densify_and_prune
+
+CAM = Camera.look_at([0.0, 0.0, -3.5], [0.0, 0.0, 0.0], width=32, height=32, fov_deg=45.0)
+BACKENDS = ["reference", "cpu"]
+
+
+def point_cloud(n=64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g)
+    return d / d.norm(dim=1, keepdim=True), torch.rand(n, 3, generator=g)
+
+
+def adaptive_model(threshold=0.01, **kw):
+    pts, cols = point_cloud()
+    m = splatzoo.create_model("gabor", pts, cols, seed=1, prune_waves=threshold, **kw)
+    with torch.no_grad():
+        m.logit_opacity.fill_(1.0)
+        m.color_b.uniform_(0, 1, generator=torch.Generator().manual_seed(3))  # give the waves real amplitude
+    return m
+
+
+def render(m, backend="reference"):
+    with torch.no_grad():
+        return rasterize(m.surfels(CAM), CAM, backend=backend)
+
+
+# ---- the contract -----------------------------------------------------------------------------------------------
+
+def test_positional_surfels_still_work_and_counts_are_validated():
+    s, cam = random_scene(20, 3, seed=1)
+    assert s.wave_counts is None and Surfels(*s.tensors().values()).wave_counts is None
+    s.wave_counts = torch.tensor([0, 3] * 10)
+    assert s.index(torch.arange(5)).wave_counts.tolist() == [0, 3, 0, 3, 0]
+    assert s.to(dtype=torch.float64).wave_counts.dtype == torch.int64  # counts stay integers
+    s.validate()
+    for bad, msg in ((torch.full((20,), 4), r"\[0, K=3\]"), (torch.zeros(19, dtype=torch.int32), "shape"),
+                     (torch.zeros(20), "integer")):
+        s.wave_counts = bad
+        with pytest.raises(ShapeError, match=msg):
+            s.validate()
+
+
+def test_reference_counts_mask_values_and_gradients():
+    s, cam = random_scene(40, 3, seed=2, dtype=torch.float64)
+    s.wave_counts = torch.randint(0, 4, (40,), generator=torch.Generator().manual_seed(0))
+    leaves = s.map(lambda t: t.detach().clone().requires_grad_(True))
+    out = rasterize_reference(leaves, cam)
+    out.rgb.sum().backward()
+    unused = torch.arange(3)[None] >= s.wave_counts[:, None]
+    assert leaves.wave_amplitudes.grad[unused].abs().max() == 0 and leaves.wave_phases.grad[unused].abs().max() == 0
+    # the same as deleting the unused waves: zero their amplitude
+    amps = torch.where(unused[..., None], torch.zeros_like(s.wave_amplitudes), s.wave_amplitudes)
+    plain = Surfels(s.means, s.quats, s.scales, s.opacities, s.base_color, s.wave_vectors, s.wave_phases, amps)
+    torch.testing.assert_close(out.rgb.detach(), rasterize_reference(plain, cam).rgb, atol=1e-12, rtol=0)
+
+
+# ---- pruning ----------------------------------------------------------------------------------------------------
+
+def test_pruning_keeps_fewer_waves_and_only_removes_small_ones():
+    m = adaptive_model(threshold=1e-9)  # removes only waves that are exactly zero
+    with torch.no_grad():
+        m.wave_weights[:32, 1:] = 0.0
+        m.wave_weights[32:48] = 0.0
+    before = render(m)
+    info = m.prune_waves(1e-9)
+    assert info["removed"] == 32 * 3 + 16 * 4 and m.summary()["waves_active"] == 256 - info["removed"]
+    assert m.wave_counts[:32].eq(1).all() and m.wave_counts[32:48].eq(0).all() and m.wave_counts[48:].eq(4).all()
+    after = render(m)
+    torch.testing.assert_close(after.rgb, before.rgb, atol=1e-6, rtol=0)  # zero waves: nothing visible changes
+    # a real threshold: every removed wave had amplitude below it, the render moves by at most their sum
+    m2 = adaptive_model(threshold=0.02)
+    a = m2.wave_weights.detach().abs() * (m2.color_a - m2.color_b).detach().abs().amax(1, keepdim=True) / 2
+    expected = int((a < 0.02).sum())
+    assert m2.prune_waves(0.02)["removed"] == expected > 0
+    assert m2.summary()["waves_active"] == 256 - expected
+
+
+def test_surfel_with_no_waves_is_a_2dgs_surfel():
+    m = adaptive_model()
+    with torch.no_grad():
+        m.wave_weights[:] = 0.0
+    m.prune_waves(0.01)
+    assert m.wave_weights.shape[1] == 0 and m.wave_counts.eq(0).all()  # stored width trimmed to nothing
+    s = m.surfels(CAM)
+    assert s.num_waves == 0
+    flat = Surfels.constant_color(s.means, s.quats, s.scales, s.opacities, s.base_color)
+    for b in BACKENDS:
+        with torch.no_grad():
+            assert torch.equal(rasterize(s, CAM, backend=b).rgb, rasterize(flat, CAM, backend=b).rgb)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_packed_checkpoint_round_trip_and_size(tmp_path, backend):
+    full = adaptive_model()
+    full_path = tmp_path / "full.pt"
+    splatzoo.save_model(full, full_path)
+    m = adaptive_model()
+    with torch.no_grad():
+        m.wave_weights[::2, 1:] = 0.0
+        m.wave_weights[1::4] = 0.0
+    m.prune_waves(0.01)
+    path = tmp_path / "pruned.pt"
+    splatzoo.save_model(m, path)
+    assert path.stat().st_size < full_path.stat().st_size and m.size_bytes() < full.size_bytes()
+    state = torch.load(path, weights_only=True)["state"]
+    assert state["wave_weights"].shape == (m.summary()["waves_active"],)  # active waves only
+    back = splatzoo.load_model(path)
+    assert back.config == m.config and torch.equal(back.wave_counts, m.wave_counts)
+    a, b = render(m, backend), render(back, backend)
+    for k, v in a.tensors().items():
+        assert torch.equal(v, getattr(b, k)), k
+
+
+def test_densify_and_train_with_pruned_waves():
+    m = adaptive_model()
+    opt = torch.optim.Adam(m.optim_groups(1.0), lr=0.0, eps=1e-15)
+    rasterize(m.surfels(CAM), CAM, backend="cpu").rgb.sum().backward()
+    opt.step()
+    with torch.no_grad():
+        m.wave_weights[:40, 2:] = 0.0
+    m.prune_waves(0.01, opt)
+    # Adam now holds the repacked parameters, with moments of the same shape
+    for name in m.wave_parameter_names:
+        p = getattr(m, name)
+        assert any(p is q for g in opt.param_groups for q in g["params"])
+        assert opt.state[p]["exp_avg"].shape == p.shape
+    stats = DensifyStats(m.num_primitives)
+    stats.grad_sum[:10], stats.count[:10] = 1.0, 1.0
+    counts = m.wave_counts.clone()
+    res = densify_and_prune(m, opt, stats, grad_threshold=0.5, scene_extent=1.0, min_opacity=0.05,
+                            generator=torch.Generator().manual_seed(0))
+    assert res["split"] + res["cloned"] == 10 and m.wave_counts.shape == (m.num_primitives,)
+    assert m.wave_index.shape == m.wave_weights.shape
+    assert torch.equal(m.wave_counts[-20:], counts[:10].repeat(2))  # split children inherit their waves
+    opt.zero_grad()
+    rasterize(m.surfels(CAM), CAM, backend="cpu").rgb.sum().backward()
+    opt.step()
+
+
+def test_trainer_prunes_through_the_hook(tmp_path):
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.training import TrainConfig, train
+
+    data = make_synthetic_scene("plain", tmp_path / "plain", views=6, width=32, height=32)
+    cfg = TrainConfig(iterations=60, num_primitives=150, densify=False, log_every=10, eval_every=60)
+    res = train(data, "gabor", {"prune_waves": 0.02, "prune_from": 0.3}, cfg, tmp_path / "run", progress=False,
+                evaluate_at_end=False)
+    m = res.model
+    assert m.summary()["waves_active"] < 150 * 4
+    log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
+    fractions = [r["wave_fraction"] for r in log if "wave_fraction" in r]
+    assert fractions[0] == 1.0 and fractions[-1] < 1.0
+    back = splatzoo.load_model(tmp_path / "run" / "model.pt")
+    assert torch.equal(render(back, "cpu").rgb, render(m.cpu(), "cpu").rgb)
+
+
+# ---- view-dependent colour --------------------------------------------------------------------------------------
+
+def test_gabor_sh_is_view_dependent():
+    pts, cols = point_cloud(8)
+    m = splatzoo.create_model("gabor", pts, cols, sh_degree=2)
+    assert m.sh_rest.shape == (8, 8, 3)
+    other = Camera.look_at([3.5, 0.0, 0.0], [0.0, 0.0, 0.0], width=32, height=32)
+    assert torch.allclose(m.surfels(CAM).base_color, m.surfels(other).base_color)  # SH starts at zero
+    with torch.no_grad():
+        m.sh_rest.normal_(0, 0.3)
+    assert not torch.allclose(m.surfels(CAM).base_color, m.surfels(other).base_color)
+    plain = splatzoo.create_model("gabor", pts, cols)
+    assert "sh_rest" not in dict(plain.named_parameters())  # the paper's model is unchanged
+    names = [g["name"] for g in m.optim_groups(1.0)]
+    assert "sh_rest" in names
+
+
+def test_adaptive_sh_gabor_is_conformant(tmp_path):
+    """What tests/test_models.py checks for every registered model, for the new options."""
+    m = adaptive_model(sh_degree=1)
+    out = rasterize(m.surfels(CAM), CAM, backend="reference")
+    (out.rgb - 0.3).abs().mean().backward()
+    for name, p in m.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    splatzoo.save_model(m, tmp_path / "m.pt")
+    back = splatzoo.load_model(tmp_path / "m.pt")
+    assert torch.equal(render(m).rgb, render(back).rgb)
