@@ -230,6 +230,38 @@ def compare_command(
     typer.echo((out / "report.md").read_text())
 
 
+@app.command("sweep", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def sweep_command(
+    ctx: typer.Context,
+    data: Optional[Path] = typer.Argument(None, help="dataset (default: a built-in synthetic scene, see --scene)"),
+    model: str = typer.Option("gabor", "--model", "-m", help="wave model swept over --n-waves (0 = the 2dgs model)"),
+    n_waves: str = typer.Option("0,1,2,4,8", "--n-waves", help="comma-separated wave counts"),
+    num_primitives: str = typer.Option("1000,2000,4000", "--num-primitives", "-n",
+                                       help="comma-separated fixed primitive counts"),
+    scene: str = typer.Option("sweater", "--scene", help="built-in synthetic scene when DATA is not given"),
+    out: Path = typer.Option(Path("runs/sweep"), "--out", "-o", help="output folder"),
+    iterations: Optional[int] = typer.Option(None, "--iterations", "-i", help="iterations per run (30000; quick 400)"),
+    quick: bool = typer.Option(False, "--quick", help="small synthetic scene (96x96) and a short schedule"),
+    seed: int = typer.Option(0, "--seed"),
+    backend: str = _BACKEND,
+    resolution: Optional[int] = _RESOLUTION,
+    max_width: Optional[int] = _MAX_WIDTH,
+    test_every: Optional[int] = _TEST_EVERY,
+    white_background: bool = _WHITE,
+) -> None:
+    """Measure the speed / accuracy trade: train every (n_waves, primitives) pair without densification and write
+    sweep.json, pareto.png and report.md. Other model options follow, e.g. `--prune-waves 0.01`."""
+    from .options import parse_model_args
+    from .sweep import sweep
+
+    options = parse_model_args(model, list(ctx.args))
+    options.pop("n_waves", None)
+    sweep(data, out, model=model, n_waves=n_waves, num_primitives=num_primitives, iterations=iterations,
+          quick=quick, seed=seed, backend=backend, synthetic_scene=scene, model_options=options,
+          scene_options=_scene_options(resolution, max_width, test_every, white_background))
+    typer.echo((out / "report.md").read_text())
+
+
 # --- mesh extraction and export (extract-mesh, export) -----------------------------------------------------
 # (mesh commands go here)
 @app.command("extract-mesh")
