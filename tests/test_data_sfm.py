@@ -7,8 +7,8 @@ import shutil
 import numpy as np
 import pytest
 
-pytest.importorskip("pycolmap")
-pytest.importorskip("open3d")
+import open3d  # noqa: E402,F401  (required: a missing dependency fails rather than skips)
+import pycolmap  # noqa: E402,F401
 
 from splatzoo.data import load_scene, make_synthetic_scene, similarity_align, synthetic_cameras  # noqa: E402
 
