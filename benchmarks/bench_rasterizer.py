@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import statistics
@@ -32,37 +31,9 @@ CONFIGS = (  # (name, width, height, surfels, backends allowed)
 
 def random_scene(n: int, width: int, height: int, K: int, seed: int = 0, dtype=torch.float32):
     """n surfels (70% on a unit sphere, 30% on a wall behind it) seen from 4 units away, 1-4 px sigma."""
-    from splatzoo.geometry import normals_to_quats
-    from splatzoo.types import Camera, Surfels
+    from splatzoo.testing import sphere_and_wall
 
-    g = torch.Generator().manual_seed(seed)
-    d64 = torch.float64
-    r = lambda *s: torch.rand(*s, generator=g, dtype=d64)  # noqa: E731
-    cam = Camera.look_at((0.0, 0.0, -4.0), (0.0, 0.0, 0.0), fov_deg=60.0, width=width, height=height)
-    ns = int(0.7 * n)
-    nw = n - ns
-    d = torch.randn(ns, 3, generator=g, dtype=d64)
-    d = d / d.norm(dim=1, keepdim=True)
-    aspect = width / height
-    wall = torch.stack([(r(nw) - 0.5) * 5 * max(aspect, 1), (r(nw) - 0.5) * 5 / min(aspect, 1),
-                        torch.full((nw,), 1.5, dtype=d64)], 1)
-    means = torch.cat([d, wall])
-    normals = torch.cat([d, torch.tensor([0.0, 0.0, -1.0], dtype=d64).expand(nw, 3)])
-    normals = normals + 0.2 * torch.randn(n, 3, generator=g, dtype=d64)
-    q = normals_to_quats(normals)
-    a = r(n) * math.pi
-    c, s_ = torch.cos(a), torch.sin(a)
-    quats = torch.stack([q[:, 0] * c - q[:, 3] * s_, q[:, 1] * c + q[:, 2] * s_, q[:, 2] * c - q[:, 1] * s_,
-                         q[:, 3] * c + q[:, 0] * s_], 1)
-    f = float(cam.K[0, 0])
-    depth = (means[:, 2] + 4.0).clamp_min(0.5)
-    scales = (1.0 + 3.0 * r(n, 2)) * depth[:, None] / f
-    freq = 0.2 + 1.5 * r(n, K)
-    th = r(n, K) * math.pi
-    wv = torch.stack([2 * math.pi * freq * torch.cos(th), 2 * math.pi * freq * torch.sin(th)], -1)
-    s = Surfels(means, quats, scales, 0.2 + 0.8 * r(n), r(n, 3), wv, r(n, K) * 2 * math.pi, (r(n, K, 3) - 0.5) * 0.6)
-    return s.to(dtype=dtype), cam
-
+    return sphere_and_wall(n, width, height, K, seed=seed, dtype=dtype)
 
 def count_pairs(surfels, camera) -> int:
     """(surfel, pixel) pairs the native CPU tile loop evaluates (see the module docstring)."""
