@@ -241,6 +241,14 @@ def _infer_2dgs(names: list[str], path) -> tuple[str, dict]:
     return "2dgs", {"sh_degree": degree}
 
 
+def _present_width(name: str, names: list[str]) -> int:
+    """How many consecutive `<prefix>0, <prefix>1, ...` properties the file has for a [N, width] parameter."""
+    prefix, present, width = _property_names(name, (1,))[0][:-1], set(names), 0
+    while f"{prefix}{width}" in present:
+        width += 1
+    return width
+
+
 def load_ply(path):
     """Rebuild the model written by `save_ply` (or a 2DGS point_cloud.ply, as a `2dgs` model)."""
     from .zoo import create_model
@@ -262,8 +270,11 @@ def load_ply(path):
     n = arr.shape[0]
     per = _exportable_parameters(model)
     new = {}
+    variable = set(getattr(model, "variable_width", ()))
     for pname, empty in per.items():
         trailing = tuple(empty.shape[1:])
+        if pname in variable and len(trailing) == 1:  # e.g. waves trimmed by pruning: the file tells the width
+            trailing = (_present_width(pname, names),)
         props = _property_names(pname, trailing)
         missing = [p for p in props if p not in names]
         if missing:

@@ -79,12 +79,83 @@ def test_pruning_keeps_fewer_waves_and_only_removes_small_ones():
     assert m.wave_counts[:32].eq(1).all() and m.wave_counts[32:48].eq(0).all() and m.wave_counts[48:].eq(4).all()
     after = render(m)
     torch.testing.assert_close(after.rgb, before.rgb, atol=1e-6, rtol=0)  # zero waves: nothing visible changes
-    # a real threshold: every removed wave had amplitude below it, the render moves by at most their sum
+    # a real threshold removes exactly the waves whose contribution is below it
     m2 = adaptive_model(threshold=0.02)
-    a = m2.wave_weights.detach().abs() * (m2.color_a - m2.color_b).detach().abs().amax(1, keepdim=True) / 2
-    expected = int((a < 0.02).sum())
+    expected = int((m2.wave_statistics()[1] < 0.02).sum())
     assert m2.prune_waves(0.02)["removed"] == expected > 0
     assert m2.summary()["waves_active"] == 256 - expected
+
+
+def test_wave_statistics_match_sampling_over_the_gaussian():
+    """mean and opacity x std of each wave over u,v ~ N(0, I), against a Monte-Carlo estimate."""
+    m = adaptive_model()
+    with torch.no_grad():
+        m.wave_freqs[:4] = torch.tensor([0.0, 0.05, 0.2, 1.5])[:, None]  # from constant to many cycles per sigma
+        m.logit_opacity[:4] = torch.tensor([0.0, 1.0, -1.0, 2.0])
+    mean, contribution = m.wave_statistics()
+    uv = torch.randn(400_000, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    s = m.surfels(CAM)
+    for i in range(4):
+        for j in range(4):
+            t = uv @ s.wave_vectors[i, j].double() + s.wave_phases[i, j].double()
+            values = s.wave_amplitudes[i, j].double()[None] * torch.cos(t)[:, None]  # [samples, 3]
+            torch.testing.assert_close(mean[i, j].double(), values.mean(0), atol=2e-3, rtol=0)
+            std = s.opacities[i].double() * values.std(0).max()
+            torch.testing.assert_close(contribution[i, j].double(), std, atol=2e-3, rtol=0)
+
+
+def mean_colors(s: Surfels) -> torch.Tensor:
+    """Each surfel's colour averaged over its Gaussian: base + sum over active waves of a cos(phi) e^{-|k|^2/2}."""
+    on = torch.arange(s.num_waves)[None] < (s.wave_counts if s.wave_counts is not None else s.num_waves)[:, None]
+    m = torch.cos(s.wave_phases) * torch.exp(-(s.wave_vectors ** 2).sum(-1) / 2) * on
+    return s.base_color + (s.wave_amplitudes * m[..., None]).sum(1)
+
+
+def test_pruning_keeps_each_surfels_mean_colour():
+    m = adaptive_model(threshold=0.05)
+    with torch.no_grad():
+        m.wave_freqs.mul_(0.3)  # low frequencies: waves whose mean is far from zero
+        m.wave_weights.mul_(10)
+        m.wave_weights[:10] *= 0.001  # these surfels lose every wave
+    before = mean_colors(m.surfels(CAM))
+    first = m.prune_waves(0.05)
+    assert first["removed"] > 40 and m.wave_counts[:10].eq(0).all() and m.wave_counts.gt(0).any()
+    torch.testing.assert_close(mean_colors(m.surfels(CAM)), before, atol=1e-6, rtol=0)
+    # pruning again (new, larger threshold) keeps folding on top of what is folded
+    m.prune_waves(0.2)
+    torch.testing.assert_close(mean_colors(m.surfels(CAM)), before, atol=1e-6, rtol=0)
+
+
+def test_waveless_surfels_store_and_train_as_2dgs_surfels(tmp_path):
+    m = adaptive_model()
+    opt = torch.optim.Adam(m.optim_groups(1.0), lr=0.01, eps=1e-15)
+    for _ in range(2):  # moments everywhere
+        opt.zero_grad()
+        (rasterize(m.surfels(CAM), CAM, backend="cpu").rgb - 0.5).square().sum().backward()
+        opt.step()
+    with torch.no_grad():
+        m.wave_weights[:16] = 1e-6
+    m.prune_waves(0.01, opt)
+    empty = m.wave_counts == 0
+    assert empty[:16].all() and not empty.all()
+    assert m.color_b[empty].eq(0).all() and m.folded_weights[empty].eq(0).all()
+    for name in ("color_b", "folded_weights"):
+        p = getattr(m, name)
+        assert opt.state[p]["exp_avg"][empty].eq(0).all()
+    for _ in range(3):  # a wave-less surfel's color_b and folded weights get no gradient and stay zero
+        opt.zero_grad()
+        (rasterize(m.surfels(CAM), CAM, backend="cpu").rgb - 0.5).square().sum().backward()
+        assert m.color_b.grad[empty].eq(0).all() and m.folded_weights.grad[empty].eq(0).all()
+        assert m.color_a.grad[empty].abs().sum() > 0
+        opt.step()
+    assert m.color_b[empty].eq(0).all() and m.folded_weights[empty].eq(0).all()
+    state = m.checkpoint()["state"]
+    assert state["color_b"].shape[0] == state["folded_weights"].shape[0] == int((~empty).sum())
+    assert state["color_a"].shape[0] == m.num_primitives and state["wave_mask"].dtype == torch.uint8
+    splatzoo.save_model(m, tmp_path / "m.pt")
+    back = splatzoo.load_model(tmp_path / "m.pt")
+    for name, p in m.named_parameters():
+        assert torch.equal(p, getattr(back, name)), name
 
 
 def test_surfel_with_no_waves_is_a_2dgs_surfel():
@@ -193,3 +264,22 @@ def test_adaptive_sh_gabor_is_conformant(tmp_path):
     splatzoo.save_model(m, tmp_path / "m.pt")
     back = splatzoo.load_model(tmp_path / "m.pt")
     assert torch.equal(render(m).rgb, render(back).rgb)
+
+
+@pytest.mark.parametrize("weights", ["some", "none"])
+def test_pruned_model_ply_round_trip(tmp_path, weights):
+    """The PLY holds the trimmed width (down to no wave columns at all); load_ply reads the width from the file."""
+    from splatzoo.export import load_ply, save_ply
+
+    m = adaptive_model()
+    with torch.no_grad():
+        m.wave_weights[:, 2:] = 0.0
+        m.wave_weights[::3, :] = 0.0
+        if weights == "none":
+            m.wave_weights[:] = 0.0
+    m.prune_waves(0.01)
+    width = m.wave_weights.shape[1]
+    assert 0 < width <= 2 if weights == "some" else width == 0
+    back = load_ply(save_ply(m, tmp_path / "m.ply"))
+    assert torch.equal(back.wave_counts, m.wave_counts) and torch.equal(back.wave_index, m.wave_index)
+    assert torch.equal(render(back).rgb, render(m).rgb)

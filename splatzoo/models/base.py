@@ -107,6 +107,17 @@ class SplatModel(nn.Module):
                                 state[key] = fn(state[key])
                         optimizer.state[new] = state
 
+    @torch.no_grad()
+    def set_rows(self, name: str, rows: torch.Tensor, value, optimizer: torch.optim.Optimizer | None = None) -> None:
+        """Overwrite rows of parameter `name` in place and restart their Adam moments (a re-parametrisation: the
+        old moments describe another quantity)."""
+        p = getattr(self, name)
+        p[rows] = value
+        state = optimizer.state.get(p) if optimizer is not None else None
+        for key in ("exp_avg", "exp_avg_sq"):
+            if state and key in state and state[key].shape == p.shape:
+                state[key][rows] = 0
+
     def size_bytes(self) -> int:
         """Bytes of stored parameters (float32)."""
         return sum(p.numel() for p in self.parameters()) * 4

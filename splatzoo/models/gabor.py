@@ -7,11 +7,16 @@ which is the rasterizer's wave bank with k_i = 2 pi f_i (cos theta_i, sin theta_
 f is in cycles per sigma.
 
 Two options beyond the paper:
-- prune_waves > 0 (adaptive waves): during training, waves whose amplitude |w_i| max_c|cA - cB|_c / 2 falls below
-  the threshold are removed, so a surfel on flat colour ends as a plain 2DGS surfel. The removed weight is folded
-  into `folded_weight` so the base colour does not jump. Active waves are packed to the front of each surfel's row
-  (`wave_index` keeps each slot's orientation) and `wave_counts` tells the rasterizer how many to evaluate.
-  Checkpoints store active waves only (packed, with a per-surfel orientation bit mask).
+- prune_waves > 0 (adaptive waves): during training, waves whose visible contribution falls below the threshold are
+  removed, so a surfel on flat colour ends as a plain 2DGS surfel. A wave's contribution is what its surfel shows
+  of it beyond a constant: opacity x the RMS, over the surfel's Gaussian, of the wave's zero-mean part (largest
+  channel). Its mean over the Gaussian, a cos(phi) exp(-|k|^2/2) (the Gaussian's characteristic function), is kept:
+  the removed wave's colour mean folds into two per-surfel weights on cA and cB (`folded_weights`), so removing a
+  wave leaves each surfel's mean colour exactly as it was. Active waves are packed to the front of each surfel's row
+  (`wave_index` keeps each slot's orientation) and `wave_counts` tells the rasterizer how many to evaluate. A surfel
+  with no wave left becomes a 2DGS surfel: its colour is color_a alone (color_b and the folded weights are zero and
+  receive no gradient). Checkpoints store active waves only (packed, with a per-surfel orientation bit mask) and,
+  for wave-less surfels, only color_a.
 - sh_degree > 0: a view-dependent spherical-harmonics term (degree >= 1 bands, no DC) added to the base colour.
 """
 from __future__ import annotations
@@ -34,10 +39,11 @@ class GaborConfig:
     sh_degree: int = field(default=0, metadata={"help": "spherical-harmonics degree (0..3) of a view-dependent term "
                                                         "added to the base colour; 0: view-independent (the paper)"})
     prune_waves: float = field(default=0.0, metadata={
-        "help": "adaptive waves: during training remove waves whose amplitude |w| max|cA-cB|/2 is below this "
-                "(colour units, images in [0,1]; e.g. 0.01); 0 keeps every wave"})
-    prune_from: float = field(default=0.25, metadata={
-        "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow)"})
+        "help": "adaptive waves: during training remove waves whose visible contribution (opacity x RMS of the "
+                "wave over its surfel, colour units for images in [0,1]) is below this, e.g. 0.01; 0 keeps every wave"})
+    prune_from: float = field(default=0.5, metadata={
+        "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow; "
+                "with densification on, pruning also waits until the last opacity reset has recovered)"})
 
     def __post_init__(self):
         if int(self.n_waves) < 1:
@@ -76,7 +82,7 @@ class GaborModel(SurfelModel):
         if config.sh_degree > 0:
             self.sh_rest = nn.Parameter(torch.zeros(n, num_sh_bases(config.sh_degree) - 1, 3))
         if self.adaptive:
-            self.folded_weight = nn.Parameter(torch.zeros(n))
+            self.folded_weights = nn.Parameter(torch.zeros(n, 2))  # removed waves' mean, as weights on cA and cB
             self.register_buffer("wave_counts", torch.full((n,), k, dtype=torch.int32), persistent=False)
             self.register_buffer("wave_index", torch.arange(k).repeat(n, 1), persistent=False)
         angles = torch.arange(k) * math.pi / k if self.orientation == "fan" else torch.zeros(k)
@@ -85,6 +91,11 @@ class GaborModel(SurfelModel):
     @property
     def adaptive(self) -> bool:
         return float(self.config.prune_waves) > 0
+
+    @property
+    def variable_width(self) -> tuple[str, ...]:
+        """[N, width] tensors whose stored width pruning trims (export reads the width back from the file)."""
+        return tuple(self.wave_parameter_names) + ("wave_index",) if self.adaptive else ()
 
     @property
     def wave_parameter_names(self) -> list[str]:
@@ -115,12 +126,14 @@ class GaborModel(SurfelModel):
         g = self.geometry()
         w = self.wave_weights
         if self.adaptive:
-            w_sum = (w * self.active_slots()).sum(1) + self.folded_weight
+            half = (w * self.active_slots()).sum(1, keepdim=True) / 2
+            base = (half + self.folded_weights[:, :1]) * self.color_a + (half + self.folded_weights[:, 1:]) * self.color_b
+            base = torch.where((self.wave_counts == 0)[:, None], self.color_a, base)  # wave-less: a 2DGS surfel
             directions = self.directions.to(w)[self.wave_index]  # [N,width,2]: each slot's own orientation
             counts = self.wave_counts
         else:
-            w_sum, directions, counts = w.sum(1), self.directions.to(w), None
-        base = w_sum[:, None] * (self.color_a + self.color_b) / 2
+            base = w.sum(1, keepdim=True) * (self.color_a + self.color_b) / 2
+            directions, counts = self.directions.to(w), None
         if self.config.sh_degree > 0:
             # bands >= 1 only: the DC term is the Gabor base colour itself
             coeffs = torch.cat([self.sh_rest.new_zeros(self.sh_rest.shape[0], 1, 3), self.sh_rest], 1)
@@ -142,36 +155,60 @@ class GaborModel(SurfelModel):
         if self.config.sh_degree > 0:
             groups.append({"name": "sh_rest", "params": [self.sh_rest], "lr": 2.5e-3 / 20})  # 2DGS's SH rest rate
         if self.adaptive:
-            groups.append({"name": "folded_weight", "params": [self.folded_weight], "lr": 1e-3})
+            groups.append({"name": "folded_weights", "params": [self.folded_weights], "lr": 1e-3})
         return groups
 
     # --- adaptive waves ---------------------------------------------------------------------------------------
     def on_step(self, step: int, train_config, optimizer) -> dict | None:
-        """Prune at the densification cadence once `prune_from` of the run has passed."""
+        """Prune at the densification cadence once `prune_from` of the run has passed (and, with densification on,
+        once opacity has recovered from the last reset: right after a reset every wave looks faint)."""
         if not self.adaptive:
             return None
-        every = max(train_config.at(train_config.densify_interval), 10)
-        if step < float(self.config.prune_from) * train_config.iterations or step % every:
+        cfg = train_config
+        first = float(self.config.prune_from) * cfg.iterations
+        if cfg.densify:
+            first = max(first, cfg.at(cfg.densify_until) + cfg.at(cfg.opacity_reset_interval) // 2)
+        every = max(cfg.at(cfg.densify_interval), 10)
+        if step < first or step % every:
             return None
         return self.prune_waves(float(self.config.prune_waves), optimizer)
 
     @torch.no_grad()
+    def wave_statistics(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean, contribution) of every stored wave slot, [N,width,3] and [N,width].
+
+        Over the surfel's Gaussian (u,v ~ N(0,I) in sigma units) the wave a cos(k.(u,v) + phi) has mean
+        a cos(phi) e^{-|k|^2/2} and second moment a^2 (1 + cos(2 phi) e^{-2|k|^2}) / 2. contribution = opacity x the
+        standard deviation (largest channel): how far the wave moves the surfel's colour away from its mean."""
+        w, phi = self.wave_weights, self.phases()
+        k2 = (2 * math.pi * self.wave_freqs) ** 2
+        amp = w[..., None] * ((self.color_a - self.color_b) / 2)[:, None, :]  # [N,width,3]
+        mean = amp * (torch.cos(phi) * torch.exp(-k2 / 2))[..., None]
+        second = amp ** 2 * ((1 + torch.cos(2 * phi) * torch.exp(-2 * k2)) / 2)[..., None]
+        std = (second - mean ** 2).clamp_min(0).sqrt().amax(-1)
+        return mean, torch.sigmoid(self.logit_opacity)[:, None] * std
+
+    @torch.no_grad()
     def prune_waves(self, threshold: float, optimizer=None) -> dict:
-        """Remove active waves with amplitude |w| max_c|cA - cB|/2 < threshold; repack each row (kept waves first,
-        in orientation order) and trim the stored width to the largest count. Returns counts."""
+        """Remove active waves whose contribution (wave_statistics) is below threshold, folding their mean colour
+        into folded_weights; repack each row (kept waves first, in orientation order) and trim the stored width to
+        the largest count. A surfel left without waves becomes a 2DGS surfel (colour in color_a). Returns counts."""
         if not self.adaptive:
             raise ShapeError("prune_waves needs a model created with prune_waves > 0 (it tracks per-surfel counts)")
         w = self.wave_weights.detach()
         n, width = w.shape
         on = self.active_slots()
-        amp = w.abs() * ((self.color_a - self.color_b).abs().amax(1, keepdim=True) / 2)
-        keep = on & (amp >= threshold)
+        _, contribution = self.wave_statistics()
+        keep = on & (contribution >= threshold)
         removed = on & ~keep
         n_removed = int(removed.sum())
         if n_removed == 0:
             return {"removed": 0, "active": int(on.sum())}
-        # the removed waves' share of the base colour (sum w)(cA + cB)/2 stays, folded into one weight
-        self.folded_weight.add_((w * removed).sum(1))
+        # A removed wave's colour w[cA (1 + cos t)/2 + cB (1 - cos t)/2] has mean w[cA (1 + m)/2 + cB (1 - m)/2]
+        # with m = cos(phi) e^{-|k|^2/2}: it adds w (1 + m)/2 to cA's weight and w (1 - m)/2 to cB's.
+        m = torch.cos(self.phases()) * torch.exp(-(2 * math.pi * self.wave_freqs) ** 2 / 2)
+        gone = w * removed
+        self.folded_weights.add_(torch.stack([(gone * (1 + m)).sum(1), (gone * (1 - m)).sum(1)], 1) / 2)
         order = torch.sort((~keep).to(torch.int8), dim=1, stable=True).indices  # kept first, order preserved
         counts = keep.sum(1)
         new_width = int(counts.max()) if n else 0
@@ -181,6 +218,14 @@ class GaborModel(SurfelModel):
             t = t.gather(1, order)[:, :new_width]
             return torch.where(live, t, torch.zeros_like(t))
 
+        # surfels losing their last wave (every weight is now folded): keep the colour fa cA + fb cB in color_a alone
+        emptied = (counts == 0) & (self.wave_counts > 0)
+        if bool(emptied.any()):
+            fa, fb = self.folded_weights[emptied].unbind(1)
+            color = fa[:, None] * self.color_a[emptied] + fb[:, None] * self.color_b[emptied]
+            self.set_rows("color_a", emptied, color, optimizer)
+            self.set_rows("color_b", emptied, 0.0, optimizer)
+            self.set_rows("folded_weights", emptied, 0.0, optimizer)
         for name in self.wave_parameter_names:
             self.swap_parameter(name, pack, optimizer)
         self.wave_index = pack(self.wave_index)
@@ -193,13 +238,18 @@ class GaborModel(SurfelModel):
         return {"waves_active": active, "wave_slots": n * k,
                 "wave_fraction": active / (n * k) if n * k else 0.0}
 
+    # what a wave-less surfel does not store (zero, and frozen by surfels(): its colour is color_a alone)
+    _waved_only = ("color_b", "folded_weights")
+
     def size_bytes(self) -> int:
         if not self.adaptive:
             return super().size_bytes()
-        waves = set(self.wave_parameter_names)
-        floats = sum(p.numel() for name, p in self.named_parameters() if name not in waves)
-        floats += int(self.active_slots().sum()) * len(waves)
-        return floats * 4 + self.wave_weights.shape[0] * 4  # + the per-surfel orientation mask (int32)
+        state = self.checkpoint()["state"]  # what is stored: active waves only, wave-less surfels without color_b
+        return sum(t.numel() * t.element_size() for t in state.values() if t.dim() > 0)
+
+    def _mask_dtype(self) -> torch.dtype:
+        k = int(self.config.n_waves)
+        return torch.uint8 if k <= 8 else torch.int16 if k <= 15 else torch.int32
 
     def checkpoint(self) -> dict:
         ck = super().checkpoint()
@@ -209,8 +259,12 @@ class GaborModel(SurfelModel):
         on = self.active_slots().cpu()
         for name in self.wave_parameter_names:
             state[name] = state[name][on]  # active waves only, row-major: surfel by surfel
-        index = self.wave_index.cpu()
-        state["wave_mask"] = torch.where(on, torch.ones_like(index) << index, torch.zeros_like(index)).sum(1).to(torch.int32)
+        waved = self.wave_counts.cpu() > 0
+        for name in self._waved_only:
+            state[name] = state[name][waved]
+        index = self.wave_index.cpu().long()
+        mask = torch.where(on, torch.ones_like(index) << index, torch.zeros_like(index)).sum(1)
+        state["wave_mask"] = mask.to(self._mask_dtype())
         state["wave_width"] = torch.tensor(int(self.wave_weights.shape[1]))
         return ck
 
@@ -226,9 +280,11 @@ class GaborModel(SurfelModel):
         index = torch.where(live, index, torch.zeros_like(index))
         dense = {}
         for name in self.wave_parameter_names:
-            t = torch.zeros(n, width, dtype=state[name].dtype)
-            t[live] = state[name]
-            dense[name] = t
+            dense[name] = torch.zeros(n, width, dtype=state[name].dtype)
+            dense[name][live] = state[name]
+        for name in self._waved_only:
+            dense[name] = torch.zeros((n,) + tuple(state[name].shape[1:]), dtype=state[name].dtype)
+            dense[name][counts > 0] = state[name]
         rest = {k2: v for k2, v in state.items() if k2 not in dense and k2 not in ("wave_mask", "wave_width")}
         self.replace_parameters({name: dense.get(name, rest.get(name)) for name, _ in self.named_parameters()})
         self.replace_parameters({"wave_counts": counts.to(torch.int32), "wave_index": index})
