@@ -2,10 +2,14 @@
 
     python benchmarks/adaptive_waves.py SCENE [SCENE ...] [--out runs/bench-adaptive] [--iterations 1500]
         [--num-primitives 2000] [--size 128] [--views 24] [--threshold 0.01] [--sh]
+    python benchmarks/adaptive_waves.py SCENE [SCENE ...] --timing [--render-sizes 128,512] [--repeats 5]
 
 Each scene: a synthetic dataset (size x size, `views` views), then `compare gabor gabor:prune_waves=T` (or, with
 --sh, `compare gabor gabor:sh_degree=3`) at a fixed primitive count without densification. Prints one table row per
 run: PSNR, SSIM, kept waves, render ms, size.
+
+--timing (after training, on a quiet machine): loads the trained models of each scene and times their test-view
+renders side by side, interleaved, at each render size (the test cameras rescaled), best of `repeats`; one thread.
 """
 from __future__ import annotations
 
@@ -27,8 +31,13 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=24)
     ap.add_argument("--threshold", default="0.01")
     ap.add_argument("--sh", action="store_true", help="compare gabor with gabor:sh_degree=3 instead")
+    ap.add_argument("--timing", action="store_true", help="only time the renders of runs trained earlier")
+    ap.add_argument("--render-sizes", default="128,512")
+    ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if args.timing:
+        return timing(args)
     from splatzoo.compare import compare
     from splatzoo.data.synthetic import make_synthetic_scene
 
@@ -46,6 +55,29 @@ def main(argv=None) -> int:
                    "render_ms": round(1000 / r["fps"], 2), "size_mb": round(r["size_bytes"] / 1e6, 4),
                    "train_s": round(r["train_seconds"] or 0, 1)}
             print(json.dumps(row), flush=True)
+    return 0
+
+
+def timing(args) -> int:
+    from splatzoo.compare import _safe
+    from splatzoo.evaluate import load_run, measure_fps
+
+    for name in args.scenes:
+        runs = sorted((Path(args.out) / name / "runs").iterdir())
+        loaded = {r.name: load_run(r) for r in runs if (r / "model.pt").exists()}
+        labels = [k for k in ("gabor", _safe(f"gabor:prune_waves={args.threshold}"), _safe("gabor:sh_degree=3"))
+                  if k in loaded]
+        for size in [int(x) for x in args.render_sizes.split(",")]:
+            best = {k: float("inf") for k in labels}
+            for _ in range(args.repeats):
+                for k in labels:  # interleaved, so drifting machine load hits every model alike
+                    model, scene, _ = loaded[k]
+                    cams = [v.camera.scaled(size / v.camera.width) for v in scene.test]
+                    best[k] = min(best[k], 1000 / measure_fps(model, cams, scene.background, "cpu"))
+            for k in labels:
+                model = loaded[k][0]
+                print(json.dumps({"scene": name, "model": k, "render_size": size, "render_ms": round(best[k], 2),
+                                  **model.summary()}), flush=True)
     return 0
 
 

@@ -82,7 +82,7 @@ def _exportable_parameters(model) -> dict[str, torch.Tensor]:
                             "parameter to use as vertex positions. Save it with splatzoo.save_model (.pt) instead")
     n = per["means"].shape[0]
     shared = [k for k in params if k not in per] + [k for k, v in per.items() if v.dim() == 0 or v.shape[0] != n]
-    buffers = [k for k in model.state_dict() if k not in params]  # persistent buffers: model-wide state
+    buffers = [k for k in model.state_dict() if k not in params and k not in per]  # model-wide persistent state
     if shared or buffers:
         raise SplatzooError(f"cannot export model {model_name!r} to PLY: {', '.join(sorted(set(shared + buffers)))} "
                             f"{'is' if len(set(shared + buffers)) == 1 else 'are'} not per-primitive (a PLY stores one "

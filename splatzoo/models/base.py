@@ -84,7 +84,8 @@ class SplatModel(nn.Module):
                 value = value.detach()
                 if value.is_floating_point() and not old.is_floating_point():
                     value = value.round()  # e.g. read back from a float PLY column
-                self.register_buffer(name, value.to(old.dtype).clone(), persistent=False)
+                persistent = name not in self._non_persistent_buffers_set
+                self.register_buffer(name, value.to(old.dtype).clone(), persistent=persistent)
             else:
                 setattr(self, name, nn.Parameter(value.detach().clone().requires_grad_(True)))
 

@@ -32,6 +32,8 @@ from ..geometry import eval_sh, num_sh_bases
 from ..types import Camera, Surfels
 from .base import SurfelModel, view_directions
 
+PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
+
 
 @dataclass
 class GaborConfig:
@@ -68,7 +70,7 @@ class GaborModel(SurfelModel):
 
     orientation = "fan"   # "fan": theta_i = i pi / N; "u": every wave along the local u axis
     learn_phase = True
-    primitive_buffers = ("wave_counts", "wave_index")  # present only with prune_waves > 0
+    primitive_buffers = ("wave_counts", "wave_index", "folded_weights")  # present only with prune_waves > 0
 
     def __init__(self, config: GaborConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
@@ -82,7 +84,9 @@ class GaborModel(SurfelModel):
         if config.sh_degree > 0:
             self.sh_rest = nn.Parameter(torch.zeros(n, num_sh_bases(config.sh_degree) - 1, 3))
         if self.adaptive:
-            self.folded_weights = nn.Parameter(torch.zeros(n, 2))  # removed waves' mean, as weights on cA and cB
+            # removed waves' mean colour as weights on cA and cB: bookkeeping, not trained (until the first pruning
+            # the model is exactly gabor-K)
+            self.register_buffer("folded_weights", torch.zeros(n, 2))
             self.register_buffer("wave_counts", torch.full((n,), k, dtype=torch.int32), persistent=False)
             self.register_buffer("wave_index", torch.arange(k).repeat(n, 1), persistent=False)
         angles = torch.arange(k) * math.pi / k if self.orientation == "fan" else torch.zeros(k)
@@ -154,14 +158,13 @@ class GaborModel(SurfelModel):
             groups.append({"name": "wave_phases", "params": [self.wave_phases], "lr": 1e-3})
         if self.config.sh_degree > 0:
             groups.append({"name": "sh_rest", "params": [self.sh_rest], "lr": 2.5e-3 / 20})  # 2DGS's SH rest rate
-        if self.adaptive:
-            groups.append({"name": "folded_weights", "params": [self.folded_weights], "lr": 1e-3})
         return groups
 
     # --- adaptive waves ---------------------------------------------------------------------------------------
     def on_step(self, step: int, train_config, optimizer) -> dict | None:
         """Prune at the densification cadence once `prune_from` of the run has passed (and, with densification on,
-        once opacity has recovered from the last reset: right after a reset every wave looks faint)."""
+        once opacity has recovered from the last reset: right after a reset every wave looks faint). The threshold
+        ramps up from 0 over most of the remaining run: a wave still growing is not cut for being small early."""
         if not self.adaptive:
             return None
         cfg = train_config
@@ -169,9 +172,11 @@ class GaborModel(SurfelModel):
         if cfg.densify:
             first = max(first, cfg.at(cfg.densify_until) + cfg.at(cfg.opacity_reset_interval) // 2)
         every = max(cfg.at(cfg.densify_interval), 10)
-        if step < first or step % every:
+        if step < first or (step % every and step != cfg.iterations):
             return None
-        return self.prune_waves(float(self.config.prune_waves), optimizer)
+        ramp = PRUNE_RAMP * (cfg.iterations - first)
+        fraction = 1.0 if ramp <= 0 else min(1.0, (step - first) / ramp)
+        return self.prune_waves(fraction * float(self.config.prune_waves), optimizer)
 
     @torch.no_grad()
     def wave_statistics(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -287,7 +292,8 @@ class GaborModel(SurfelModel):
             dense[name][counts > 0] = state[name]
         rest = {k2: v for k2, v in state.items() if k2 not in dense and k2 not in ("wave_mask", "wave_width")}
         self.replace_parameters({name: dense.get(name, rest.get(name)) for name, _ in self.named_parameters()})
-        self.replace_parameters({"wave_counts": counts.to(torch.int32), "wave_index": index})
+        self.replace_parameters({"wave_counts": counts.to(torch.int32), "wave_index": index,
+                                 "folded_weights": dense["folded_weights"]})
         self.load_state_dict({k2: v for k2, v in rest.items() if k2 not in dense}, strict=False)
 
 
