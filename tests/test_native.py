@@ -24,7 +24,7 @@ from splatzoo.rasterizers.reference import rasterize_reference
 from splatzoo.testing import sphere_and_wall as random_scene
 from splatzoo.types import Camera, Surfels
 
-CSRC = Path(__file__).resolve().parents[1] / "csrc"
+CSRC = Path(__file__).resolve().parents[1] / "splatzoo" / "csrc"
 FIELDS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
 
 
@@ -362,3 +362,19 @@ def test_wave_counts_match_reference(ext, dtype):
     flat = Surfels(s.means, s.quats, s.scales, s.opacities, s.base_color, s.wave_vectors[:, :0], s.wave_phases[:, :0],
                    s.wave_amplitudes[:, :0])
     assert torch.equal(_native(s, cam).rgb, _native(flat, cam).rgb)
+
+
+def test_an_installed_package_carries_the_native_sources(tmp_path):
+    """A regular (non-editable) install must ship splatzoo/csrc, or the native backend is gone for pip users."""
+    import shutil
+    import subprocess
+    import sys
+
+    src = tmp_path / "src"
+    shutil.copytree(CSRC.parents[1], src, ignore=shutil.ignore_patterns(".git", "runs", "build", "*.egg-info",
+                                                                      "__pycache__", ".pytest_cache", "tests"))
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
+                    "--no-warn-script-location", "--target", str(target), str(src)], check=True)
+    shipped = sorted(p.name for p in (target / "splatzoo" / "csrc").iterdir())
+    assert shipped == sorted(p.name for p in CSRC.iterdir() if p.is_file())

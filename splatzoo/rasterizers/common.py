@@ -1,6 +1,6 @@
 """Constants and per-surfel set-up shared by every rasterizer backend.
 
-The same numbers are written in csrc/surfel_math.h; tests/test_native.py checks the two agree.
+The same numbers are written in splatzoo/csrc/surfel_math.h; tests/test_native.py checks the two agree.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Native tile rasterizers: C++ (OpenMP) on the CPU and CUDA on the GPU, built lazily from csrc/.
+"""Native tile rasterizers: C++ (OpenMP) on the CPU and CUDA on the GPU, built lazily from splatzoo/csrc/ (package data).
 
 The per-surfel set-up stays in PyTorch (`common.project`): autograd carries the gradients of T, centre, depth and
 normal back to means, quats and scales. The native op takes the visible surfels, sorted front to back, and its
@@ -23,7 +23,7 @@ from ..errors import BackendUnavailableError
 from ..types import Camera, RenderOutput, Surfels
 from .common import background_tensor, project
 
-CSRC = Path(__file__).resolve().parents[2] / "csrc"
+CSRC = Path(__file__).resolve().parents[1] / "csrc"  # shipped inside the package (package data)
 CPU_SOURCES = ("ext.cpp", "rasterize_cpu.cpp")
 CUDA_SOURCES = CPU_SOURCES + ("rasterize_cuda.cu",)
 HEADERS = ("surfel_math.h", "rasterize.h")
@@ -138,8 +138,8 @@ def _build(kind: str):
     missing = [n for n in (CUDA_SOURCES if kind == "cuda" else CPU_SOURCES) + HEADERS if not (CSRC / n).is_file()]
     if missing:
         raise BackendUnavailableError(
-            f"the native rasterizer sources are missing ({', '.join(missing)} under {CSRC}); install splatzoo from "
-            "a source checkout (pip install -e .) so csrc/ is present")
+            f"the native rasterizer sources are missing ({', '.join(missing)} under {CSRC}); the installed splatzoo "
+            "is incomplete: reinstall it (pip install --force-reinstall splatzoo, or pip install -e . from a checkout)")
     from torch.utils import cpp_extension
 
     try:
