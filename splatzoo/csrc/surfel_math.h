@@ -102,11 +102,19 @@ SZ_HD void sincos_poly(float x, float& s, float& c) {
     float ps = ((-1.9515295891e-4f * r2 + 8.3321608736e-3f) * r2 - 1.6666654611e-1f) * r2 * r + r;
     float pc = ((2.443315711809948e-5f * r2 - 1.388731625493765e-3f) * r2 + 4.166664568298827e-2f) * r2 * r2
                - 0.5f * r2 + 1.0f;
-    int q = static_cast<int>(j) & 3;
-    float sv = (q & 1) ? pc : ps;
-    float cv = (q & 1) ? ps : pc;
-    s = (q & 2) ? -sv : sv;
-    c = ((q + 1) & 2) ? -cv : cv;
+    // Quadrant q: swap sin and cos for odd q, flip signs by q. Done on the bits: as ?: selects, scalar code (a wave
+    // count other than the vector width) compiled to branches on the phase, mispredicted half the time.
+    const uint32_t q = static_cast<uint32_t>(static_cast<int32_t>(j));
+    const uint32_t swap = 0u - (q & 1u);  // all ones for odd q
+    uint32_t bs, bc;
+    std::memcpy(&bs, &ps, sizeof(bs));
+    std::memcpy(&bc, &pc, sizeof(bc));
+    uint32_t sv = (bs & ~swap) | (bc & swap);
+    uint32_t cv = (bc & ~swap) | (bs & swap);
+    sv ^= (q & 2u) << 30;           // sin < 0 in quadrants 2, 3
+    cv ^= ((q + 1u) & 2u) << 30;    // cos < 0 in quadrants 1, 2
+    std::memcpy(&s, &sv, sizeof(s));
+    std::memcpy(&c, &cv, sizeof(c));
 }
 #endif
 
@@ -201,11 +209,16 @@ SZ_HD void eval_pair(const Geom<S>& g, S x, S y, PairEval<S>& e) {
 
 // c(u, v) = max(0, c0 + sum_k a_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp.
 template <class S>
-SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int K, S u, S v, S col[3], S pre[3]) {
+SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int K, S u, S v, S col[3], S pre[3],
+                      S* sn_out = nullptr, S* cs_out = nullptr) {
     S r = base[0], gg = base[1], b = base[2];
     for (int k = 0; k < K; ++k) {
         S sn, cs;
         sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
+        if (sn_out) {  // kept for the backward, which needs both
+            sn_out[k] = sn;
+            cs_out[k] = cs;
+        }
         r += cs * wa[3 * k];
         gg += cs * wa[3 * k + 1];
         b += cs * wa[3 * k + 2];
@@ -213,6 +226,9 @@ SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int 
     pre[0] = r; pre[1] = gg; pre[2] = b;
     col[0] = smax(r, S(0)); col[1] = smax(gg, S(0)); col[2] = smax(b, S(0));
 }
+
+// Waves per surfel whose sin/cos the backward keeps on the stack (more are recomputed, same values).
+constexpr int SINCOS_CACHE = 32;
 
 // NDC depth of the distortion term, m(z) = f/(f-n) (1 - n/z), and dm/dz.
 template <class S> SZ_HD S ndc_depth(S z) { return S(FAR / (FAR - NEAR)) * (S(1) - S(NEAR) / z); }
@@ -341,7 +357,10 @@ SZ_HD void blend_backward(PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e
     S Ti = p.T / oma;  // transmittance before this contribution
     S w = a * Ti;
     S col[3], pre[3];
-    wave_color(base, wv, wp, wa, K, e.u, e.v, col, pre);
+    // sin/cos of each wave phase, computed once for the colour and reused for its derivatives
+    S sn_cache[SINCOS_CACHE], cs_cache[SINCOS_CACHE];
+    const bool cached = K <= SINCOS_CACHE;
+    wave_color(base, wv, wp, wa, K, e.u, e.v, col, pre, cached ? sn_cache : nullptr, cached ? cs_cache : nullptr);
     S m = ndc_depth(e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
     S f = p.g_rgb[0] * col[0] + p.g_rgb[1] * col[1] + p.g_rgb[2] * col[2] + p.g_D * e.z +
@@ -365,7 +384,12 @@ SZ_HD void blend_backward(PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e
     S g_u = S(0), g_v = S(0);
     for (int k = 0; k < K; ++k) {
         S sn, cs;
-        sz_sincos(e.u * wv[2 * k] + e.v * wv[2 * k + 1] + wp[k], sn, cs);
+        if (cached) {
+            sn = sn_cache[k];
+            cs = cs_cache[k];
+        } else {
+            sz_sincos(e.u * wv[2 * k] + e.v * wv[2 * k + 1] + wp[k], sn, cs);
+        }
         S ga = gcol[0] * wa[3 * k] + gcol[1] * wa[3 * k + 1] + gcol[2] * wa[3 * k + 2];
         S gt = -sn * ga;  // d/d(phase)
         int o = G_WAVES + G_PER_WAVE * k;
