@@ -63,10 +63,10 @@ def timing(args) -> int:
     from splatzoo.evaluate import load_run, measure_fps
 
     for name in args.scenes:
-        runs = sorted((Path(args.out) / name / "runs").iterdir())
-        loaded = {r.name: load_run(r) for r in runs if (r / "model.pt").exists()}
+        runs = Path(args.out) / name / "runs"
         labels = [k for k in ("gabor", _safe(f"gabor:prune_waves={args.threshold}"), _safe("gabor:sh_degree=3"))
-                  if k in loaded]
+                  if (runs / k / "model.pt").exists()]
+        loaded = {k: load_run(runs / k) for k in labels}
         for size in [int(x) for x in args.render_sizes.split(",")]:
             best = {k: float("inf") for k in labels}
             for _ in range(args.repeats):

@@ -291,3 +291,14 @@ def test_adaptive_gabor_is_gabor_until_the_first_pruning():
     for name, p in plain.named_parameters():
         assert torch.equal(p, getattr(adaptive, name)), name
     assert torch.equal(render(plain).rgb, render(adaptive).rgb)
+
+
+def test_checkpoints_of_the_single_fold_format_still_load():
+    """fixtures/adaptive_v010.pt was saved by splatzoo 0.1.0 (one folded weight on (cA + cB)/2; color_b stored for
+    every surfel); its render, by the code of that release, is adaptive_v010_render.pt."""
+    from pathlib import Path
+
+    fixtures = Path(__file__).parent / "fixtures"
+    m = splatzoo.load_model(fixtures / "adaptive_v010.pt")
+    assert m.wave_counts.eq(0).sum() == 12 and m.color_b[:12].eq(0).all()
+    torch.testing.assert_close(render(m).rgb, torch.load(fixtures / "adaptive_v010_render.pt"), atol=1e-6, rtol=0)

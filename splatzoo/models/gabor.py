@@ -276,6 +276,8 @@ class GaborModel(SurfelModel):
     def load_checkpoint_state(self, state: dict) -> None:
         if not self.adaptive or "wave_mask" not in state:
             return super().load_checkpoint_state(state)
+        if "folded_weight" in state:
+            state = _upgrade_single_fold(state)
         mask = state["wave_mask"].long()
         n, k, width = mask.shape[0], int(self.config.n_waves), int(state["wave_width"])
         bits = (mask[:, None] >> torch.arange(k)) & 1  # [N,K] orientation i in use
@@ -295,6 +297,21 @@ class GaborModel(SurfelModel):
         self.replace_parameters({"wave_counts": counts.to(torch.int32), "wave_index": index,
                                  "folded_weights": dense["folded_weights"]})
         self.load_state_dict({k2: v for k2, v in rest.items() if k2 not in dense}, strict=False)
+
+
+def _upgrade_single_fold(state: dict) -> dict:
+    """Checkpoints of splatzoo 0.1.0 folded removed waves into one weight f on (cA + cB)/2 and stored color_b for
+    every surfel: the same colours as weights (f/2, f/2), and wave-less surfels' colour moved into color_a."""
+    state = dict(state)
+    f = state.pop("folded_weight")
+    bits = (state["wave_mask"].long()[:, None] >> torch.arange(31)) & 1
+    waved = bits.sum(1) > 0
+    color_a, color_b = state["color_a"].clone(), state["color_b"]
+    color_a[~waved] = (f[~waved, None] / 2) * (color_a[~waved] + color_b[~waved])
+    state["color_a"] = color_a
+    state["color_b"] = color_b[waved]
+    state["folded_weights"] = torch.stack([f, f], 1)[waved] / 2
+    return state
 
 
 class BaselineBModel(GaborModel):
