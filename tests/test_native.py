@@ -151,6 +151,24 @@ def test_gradcheck_float64(ext):
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)
 
 
+def test_gradcheck_float64_whole_cpu_render(ext):
+    """The CPU path's own projection, culling and sort with their hand-written backward (render / render_backward),
+    by finite differences. Not w.r.t. the means: a small move of a mean moves the boundary where the screen filter
+    takes over (there the surfel is seen as its centre, a step in colour), in the reference as well; the means'
+    gradient is checked against the reference's autograd in test_matches_reference_float64_exactly."""
+    s, cam = random_scene(6, 12, 10, 2, seed=3, dtype=torch.float64, px_sigma=(2.0, 3.0))
+    s.opacities.fill_(0.6)
+    camera_tensors = (cam.K @ cam.R, cam.K @ cam.t, cam.center)
+    means = s.means.detach()
+    inputs = [t.detach().clone().requires_grad_(True) for name, t in s.tensors().items() if name != "means"]
+
+    def f(*x):
+        outs = native._RenderCpuFn.apply(ext, camera_tensors, cam.width, cam.height, None, means, *x)
+        return tuple(o * w for o, w in zip(outs, (1.0, 0.7, 0.3, 0.2, 0.5, 2.0)))
+
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)
+
+
 def test_dispatch_by_name(ext):
     s, cam = random_scene(50, 32, 32, 1, seed=2)
     a = rasterize(s, cam, backend="cpu")

@@ -229,6 +229,116 @@ std::vector<Tensor> backward(const Tensor& T, const Tensor& center, const Tensor
     return v;
 }
 
+// ---- the whole CPU render in one call: projection, culling, depth sort, tile rasterizer ------------------------
+// Moves the per-surfel set-up (common.project, common.screen_boxes, the sort and the gathers, and their autograd)
+// out of Python, where its ~100 small tensor ops cost as much as the tile loop on small images.
+
+template <class S>
+sz::CameraArgs<S> camera_args(const Tensor& KR, const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H) {
+    sz::CameraArgs<S> c;
+    Tensor kr = KR.contiguous(), kt = Kt.contiguous(), e = eye.contiguous();
+    for (int i = 0; i < 9; ++i) c.KR[i] = kr.data_ptr<S>()[i];
+    for (int i = 0; i < 3; ++i) {
+        c.Kt[i] = kt.data_ptr<S>()[i];
+        c.eye[i] = e.data_ptr<S>()[i];
+    }
+    c.W = int(W);
+    c.H = int(H);
+    return c;
+}
+
+void check_camera(const Tensor& means, const Tensor& KR, const Tensor& Kt, const Tensor& eye) {
+    TORCH_CHECK(means.device().is_cpu(), "splatzoo render: CPU tensors expected");
+    TORCH_CHECK(means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble,
+                "splatzoo render: float32 or float64 tensors expected, got ", means.scalar_type());
+    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "splatzoo render: means must be [N,3]");
+    for (const Tensor* t : {&KR, &Kt, &eye})
+        TORCH_CHECK(t->scalar_type() == means.scalar_type() && t->device().is_cpu(),
+                    "splatzoo render: camera tensors must be ", means.scalar_type(), " on the CPU");
+    TORCH_CHECK(KR.numel() == 9 && Kt.numel() == 3 && eye.numel() == 3, "splatzoo render: KR [3,3], Kt [3], eye [3]");
+}
+
+// render(means, quats, scales, opacities, base_color, wave_vectors, wave_phases, wave_amplitudes, KR, Kt, eye,
+//        width, height, wave_counts=None)
+// -> [rgb, alpha, depth, median_depth, normal, distortion, *saved (N_OUT - 6), T, center, depth, normal, opacities,
+//     base, wave_vectors, wave_phases, wave_amplitudes, boxes, wave_counts (compact, or empty), order]
+// The compact tensors hold the visible surfels front to back; order maps them to input rows.
+std::vector<Tensor> render(const Tensor& means, const Tensor& quats, const Tensor& scales, const Tensor& opac,
+                           const Tensor& base, const Tensor& wv, const Tensor& wp, const Tensor& wa, const Tensor& KR,
+                           const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H,
+                           const std::optional<Tensor>& wave_counts) {
+    check_camera(means, KR, Kt, eye);
+    const int64_t N = means.size(0);
+    TORCH_CHECK(quats.sizes() == at::IntArrayRef({N, 4}) && scales.sizes() == at::IntArrayRef({N, 2}) &&
+                    opac.sizes() == at::IntArrayRef({N}),
+                "splatzoo render: quats [N,4], scales [N,2], opacities [N] expected");
+    for (const Tensor* t : {&quats, &scales, &opac})
+        TORCH_CHECK(t->scalar_type() == means.scalar_type() && t->device().is_cpu(),
+                    "splatzoo render: every surfel tensor must be ", means.scalar_type(), " on the CPU");
+    auto f = means.options();
+    Tensor T = at::empty({N, 3, 3}, f), center = at::empty({N, 2}, f), depth = at::empty({N}, f);
+    Tensor normal = at::empty({N, 3}, f), boxes = at::empty({N, 4}, f);
+    Tensor visible = at::empty({N}, f.dtype(at::kBool));
+    Tensor m = means.contiguous(), q = quats.contiguous(), sc = scales.contiguous(), op = opac.contiguous();
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_project_cpu", [&] {
+        sz::cpu_project<scalar_t>(camera_args<scalar_t>(KR, Kt, eye, W, H), N, m.data_ptr<scalar_t>(),
+                                  q.data_ptr<scalar_t>(), sc.data_ptr<scalar_t>(), op.data_ptr<scalar_t>(),
+                                  T.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+                                  normal.data_ptr<scalar_t>(), boxes.data_ptr<scalar_t>(), visible.data_ptr<bool>(),
+                                  at::get_num_threads());
+    });
+    // front to back by centre depth, ties by index: the reference's order
+    Tensor vis = at::nonzero(visible).squeeze(1);
+    Tensor order = vis.index_select(0, std::get<1>(at::sort(depth.index_select(0, vis), true, 0, false)));
+    auto take = [&](const Tensor& t) { return t.index_select(0, order); };
+    std::optional<Tensor> counts;
+    if (wave_counts.has_value() && wave_counts->defined()) {
+        TORCH_CHECK(wave_counts->dim() == 1 && wave_counts->size(0) == N, "splatzoo render: wave_counts must be [N]");
+        counts = take(wave_counts->to(at::kInt));
+    }
+    Inputs in = check_inputs(take(T), take(center), take(depth), take(normal), take(opac), take(base), take(wv),
+                             take(wp), take(wa), take(boxes), W, H, counts);
+    std::vector<Tensor> o = forward_cpu(in);
+    o.insert(o.end(), {in.T, in.center, in.depth, in.normal, in.opac, in.base, in.wv, in.wp, in.wa, in.boxes,
+                       in.wc.defined() ? in.wc : at::empty({0}, f.dtype(at::kInt)), order});
+    return o;
+}
+
+// render_backward(means, quats, scales, KR, Kt, eye, width, height, saved (render's list from index 0: the N_OUT
+//                 outputs and state, then the 12 compact tensors), grads of the 6 outputs, has_counts)
+// -> [v_means, v_quats, v_scales, v_opacities, v_base, v_wave_vectors, v_wave_phases, v_wave_amplitudes]
+std::vector<Tensor> render_backward(const Tensor& means, const Tensor& quats, const Tensor& scales, const Tensor& KR,
+                                    const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H,
+                                    std::vector<Tensor> saved, std::vector<Tensor> grads, bool has_counts) {
+    check_camera(means, KR, Kt, eye);
+    TORCH_CHECK(int(saved.size()) == N_OUT + 12, "splatzoo render_backward: got ", saved.size(), " saved tensors");
+    std::vector<Tensor> outs(saved.begin(), saved.begin() + N_OUT);
+    const Tensor* c = saved.data() + N_OUT;  // T, center, depth, normal, opac, base, wv, wp, wa, boxes, counts, order
+    const Tensor& order = c[11];
+    std::optional<Tensor> counts;
+    if (has_counts) counts = c[10];
+    std::vector<Tensor> v = backward(c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], W, H, outs, grads,
+                                     counts);
+    const int64_t N = means.size(0);
+    auto scatter = [&](const Tensor& t) {
+        std::vector<int64_t> shape = t.sizes().vec();
+        shape[0] = N;
+        return at::zeros(shape, t.options()).index_copy_(0, order, t);
+    };
+    Tensor v_T = scatter(v[0]), v_center = scatter(v[1]), v_depth = scatter(v[2]), v_normal = scatter(v[3]);
+    Tensor v_means = at::empty({N, 3}, means.options()), v_quats = at::empty({N, 4}, means.options());
+    Tensor v_scales = at::empty({N, 2}, means.options());
+    Tensor m = means.contiguous(), q = quats.contiguous(), sc = scales.contiguous();
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_project_backward_cpu", [&] {
+        sz::cpu_project_backward<scalar_t>(
+            camera_args<scalar_t>(KR, Kt, eye, W, H), N, m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(),
+            sc.data_ptr<scalar_t>(), v_T.data_ptr<scalar_t>(), v_center.data_ptr<scalar_t>(),
+            v_depth.data_ptr<scalar_t>(), v_normal.data_ptr<scalar_t>(), v_means.data_ptr<scalar_t>(),
+            v_quats.data_ptr<scalar_t>(), v_scales.data_ptr<scalar_t>(), at::get_num_threads());
+    });
+    return {v_means, v_quats, v_scales, scatter(v[4]), scatter(v[5]), scatter(v[6]), scatter(v[7]), scatter(v[8])};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -242,6 +352,13 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           py::arg("depth"), py::arg("normal"), py::arg("opacities"), py::arg("base_color"), py::arg("wave_vectors"),
           py::arg("wave_phases"), py::arg("wave_amplitudes"), py::arg("boxes"), py::arg("width"), py::arg("height"),
           py::arg("outs"), py::arg("grads"), py::arg("wave_counts") = py::none());
+    m.def("render", &render, "Project, cull, sort and rasterize surfels on the CPU in one call", py::arg("means"),
+          py::arg("quats"), py::arg("scales"), py::arg("opacities"), py::arg("base_color"), py::arg("wave_vectors"),
+          py::arg("wave_phases"), py::arg("wave_amplitudes"), py::arg("KR"), py::arg("Kt"), py::arg("eye"),
+          py::arg("width"), py::arg("height"), py::arg("wave_counts") = py::none());
+    m.def("render_backward", &render_backward, "Gradients of render's surfel inputs", py::arg("means"),
+          py::arg("quats"), py::arg("scales"), py::arg("KR"), py::arg("Kt"), py::arg("eye"), py::arg("width"),
+          py::arg("height"), py::arg("saved"), py::arg("grads"), py::arg("has_counts"));
     m.attr("GEOM") = sz::GEOM;
     m.attr("N_OUTPUTS") = int(N_OUT);
     m.attr("NEAR") = sz::NEAR;

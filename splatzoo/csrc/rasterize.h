@@ -54,6 +54,16 @@ inline int tiles_x(int W) { return (W + 15) / 16; }
 inline int tiles_y(int H) { return (H + 15) / 16; }
 
 // ---- CPU (OpenMP) ----
+template <class S> struct CameraArgs;  // surfel_math.h
+// The camera-dependent set-up of N surfels (project_surfel): T [N,3,3], centre [N,2], depth [N], normal [N,3],
+// boxes [N,4], visible [N]; and its backward (project_backward) to means [N,3], quats [N,4], scales [N,2].
+template <class S>
+void cpu_project(const CameraArgs<S>& cam, int64_t N, const S* means, const S* quats, const S* scales, const S* opac,
+                 S* T, S* center, S* depth, S* normal, S* boxes, bool* visible, int threads);
+template <class S>
+void cpu_project_backward(const CameraArgs<S>& cam, int64_t N, const S* means, const S* quats, const S* scales,
+                          const S* v_T, const S* v_center, const S* v_depth, const S* v_normal, S* v_means,
+                          S* v_quats, S* v_scales, int threads);
 // Fills geom and bounds; returns the number of (tile, surfel) pairs and writes surfel_off [M+1] (CSR of pairs by
 // surfel, surfel-major order).
 template <class S> int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfel_off, int threads);

@@ -276,11 +276,34 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
     }
 }
 
+template <class S>
+void cpu_project(const CameraArgs<S>& cam, int64_t N, const S* means, const S* quats, const S* scales, const S* opac,
+                 S* T, S* center, S* depth, S* normal, S* boxes, bool* visible, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads) if (N > 4096)
+    for (int64_t i = 0; i < N; ++i)
+        visible[i] = project_surfel(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, opac[i], T + 9 * i,
+                                    center + 2 * i, depth + i, normal + 3 * i, boxes + 4 * i);
+}
+
+template <class S>
+void cpu_project_backward(const CameraArgs<S>& cam, int64_t N, const S* means, const S* quats, const S* scales,
+                          const S* v_T, const S* v_center, const S* v_depth, const S* v_normal, S* v_means,
+                          S* v_quats, S* v_scales, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads) if (N > 4096)
+    for (int64_t i = 0; i < N; ++i)
+        project_backward(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, v_T + 9 * i, v_center + 2 * i, v_depth[i],
+                         v_normal + 3 * i, v_means + 3 * i, v_quats + 4 * i, v_scales + 2 * i);
+}
+
 #define SZ_INSTANTIATE(S)                                                                                           \
     template int64_t cpu_prepare<S>(const SurfelArgs<S>&, S*, int*, int64_t*, int);                                 \
     template void cpu_forward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, int);                                  \
     template void cpu_backward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, const GradArgs<S>&, const int64_t*,   \
-                                  const int*, S*, int);
+                                  const int*, S*, int);                                                            \
+    template void cpu_project<S>(const CameraArgs<S>&, int64_t, const S*, const S*, const S*, const S*, S*, S*, S*,   \
+                                 S*, S*, bool*, int);                                                               \
+    template void cpu_project_backward<S>(const CameraArgs<S>&, int64_t, const S*, const S*, const S*, const S*,     \
+                                          const S*, const S*, const S*, S*, S*, S*, int);
 SZ_INSTANTIATE(float)
 SZ_INSTANTIATE(double)
 

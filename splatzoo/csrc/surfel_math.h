@@ -139,6 +139,153 @@ SZ_HD void sz_sincos(double x, double& s, double& c) {
     c = cos(x);
 }
 
+// ---- projection: the camera-dependent set-up of common.project and common.screen_boxes ------------------------
+// KR = K R_cam (row-major), Kt = K t, eye = camera centre in world coordinates; W, H the image size.
+template <class S>
+struct CameraArgs {
+    S KR[9], Kt[3], eye[3];
+    int W, H;
+};
+
+// NaN-propagating min/max, as torch.minimum / torch.maximum (smin/smax drop a NaN operand).
+template <class S> SZ_HD S nan_min(S a, S b) { return (a != a || b != b) ? a + b : (a < b ? a : b); }
+template <class S> SZ_HD S nan_max(S a, S b) { return (a != a || b != b) ? a + b : (a > b ? a : b); }
+
+// Rotation (row-major) of the quaternion (w, x, y, z) divided by max(|q|, 1e-12), as geometry.quat_to_rotmat.
+template <class S>
+SZ_HD void quat_rotmat(const S* q, S R[9], S qn[4], S& norm) {
+    norm = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    const S nc = smax(norm, S(1e-12));
+    for (int i = 0; i < 4; ++i) qn[i] = q[i] / nc;
+    const S w = qn[0], x = qn[1], y = qn[2], z = qn[3];
+    R[0] = S(1) - S(2) * (y * y + z * z); R[1] = S(2) * (x * y - w * z);         R[2] = S(2) * (x * z + w * y);
+    R[3] = S(2) * (x * y + w * z);         R[4] = S(1) - S(2) * (x * x + z * z); R[5] = S(2) * (y * z - w * x);
+    R[6] = S(2) * (x * z - w * y);         R[7] = S(2) * (y * z + w * x);         R[8] = S(1) - S(2) * (x * x + y * y);
+}
+
+// T = [a | b | c] with a = K R_cam (s_u t_u), b = K R_cam (s_v t_v), c = K R_cam p + K t (T9 row-major: row i is
+// (a_i, b_i, c_i)); the projected centre c_xy / c_z, the camera depth c_z, the world normal t_w turned to face the
+// camera; and the exact screen box of the support (common.screen_boxes: the disc u^2 + v^2 <= 2 ln(255 o) as a
+// conic, united with the screen filter's disc, padded for rounding). Returns whether the surfel is visible.
+template <class S>
+SZ_HD bool project_surfel(const CameraArgs<S>& cam, const S* mean, const S* quat, const S* scale, S opacity, S* T9,
+                          S* center, S* depth, S* normal, S* box) {
+    S R[9], qn[4], qnorm;
+    quat_rotmat(quat, R, qn, qnorm);
+    const S* KR = cam.KR;
+    for (int i = 0; i < 3; ++i) {
+        T9[3 * i + 0] = KR[3 * i] * (scale[0] * R[0]) + KR[3 * i + 1] * (scale[0] * R[3]) + KR[3 * i + 2] * (scale[0] * R[6]);
+        T9[3 * i + 1] = KR[3 * i] * (scale[1] * R[1]) + KR[3 * i + 1] * (scale[1] * R[4]) + KR[3 * i + 2] * (scale[1] * R[7]);
+        T9[3 * i + 2] = KR[3 * i] * mean[0] + KR[3 * i + 1] * mean[1] + KR[3 * i + 2] * mean[2] + cam.Kt[i];
+    }
+    const S cz = T9[8];
+    *depth = cz;
+    const S d = sabs(cz) > S(1e-12) ? cz : S(1);
+    center[0] = T9[2] / d;
+    center[1] = T9[5] / d;
+    const S facing = R[2] * (mean[0] - cam.eye[0]) + R[5] * (mean[1] - cam.eye[1]) + R[8] * (mean[2] - cam.eye[2]);
+    const S flip = facing > S(0) ? S(-1) : S(1);
+    normal[0] = R[2] * flip;
+    normal[1] = R[5] * flip;
+    normal[2] = R[8] * flip;
+
+    const S o = smin(smax(opacity, S(0)), S(1));
+    const S log_o = log(smax(o * S(255), S(1e-30)));
+    const bool visible = cz > S(NEAR) && log_o > S(0);
+    const S r2 = smax(S(2) * log_o, S(0));
+    // Q = T diag(r2, r2, -1) T^T (the dual conic of the disc's image)
+    auto Q = [&](int i, int j) {
+        return r2 * (T9[3 * i] * T9[3 * j] + T9[3 * i + 1] * T9[3 * j + 1]) - T9[3 * i + 2] * T9[3 * j + 2];
+    };
+    const S q22 = Q(2, 2), q02 = Q(0, 2), q12 = Q(1, 2);
+    const bool bounded = q22 < S(0);  // the disc lies entirely in front of the camera plane
+    const S safe = bounded ? q22 : S(-1);
+    const S big = S(double(cam.W > cam.H ? cam.W : cam.H) * 4 + 1e4);
+    S b[4];
+    if (bounded) {
+        const S cx = q02 / safe, cy = q12 / safe;
+        const S hx = sqrt(smax(q02 * q02 - Q(0, 0) * q22, S(0))) / sabs(safe);
+        const S hy = sqrt(smax(q12 * q12 - Q(1, 1) * q22, S(0))) / sabs(safe);
+        b[0] = cx - hx; b[1] = cy - hy; b[2] = cx + hx; b[3] = cy + hy;
+    } else {
+        b[0] = -big; b[1] = -big; b[2] = big; b[3] = big;
+    }
+    const S rf = sqrt(smax(log_o, S(0)) / S(FILTER_INV_SQ / 2));
+    b[0] = nan_min(b[0], center[0] - rf);
+    b[1] = nan_min(b[1], center[1] - rf);
+    b[2] = nan_max(b[2], center[0] + rf);
+    b[3] = nan_max(b[3], center[1] + rf);
+    for (int k = 0; k < 4; ++k) {
+        S v = b[k] != b[k] ? S(0) : b[k];  // nan_to_num, then clamp to +-big
+        v = smin(smax(v, -big), big);
+        const S pad = S(1e-3) * (S(1) + sabs(v));  // slack for rounding: a box is a cull test, never a cut
+        box[k] = k < 2 ? v - pad : v + pad;
+    }
+    const bool on_screen = box[2] >= S(0.5) && box[0] <= S(cam.W) - S(0.5) && box[3] >= S(0.5) &&
+                           box[1] <= S(cam.H) - S(0.5);
+    return visible && on_screen;
+}
+
+// Gradients of project_surfel's differentiable outputs (T, centre, depth, normal) -> mean, quaternion, scales.
+// The facing flip and the box are piecewise constant; the centre divides by c_z only where |c_z| > 1e-12.
+template <class S>
+SZ_HD void project_backward(const CameraArgs<S>& cam, const S* mean, const S* quat, const S* scale, const S* v_T9,
+                            const S* v_center, S v_depth, const S* v_normal, S* v_mean, S* v_quat, S* v_scale) {
+    S R[9], qn[4], qnorm;
+    quat_rotmat(quat, R, qn, qnorm);
+    const S* KR = cam.KR;
+    S c[3], v_a[3], v_b[3], v_c[3];
+    for (int i = 0; i < 3; ++i) {
+        c[i] = KR[3 * i] * mean[0] + KR[3 * i + 1] * mean[1] + KR[3 * i + 2] * mean[2] + cam.Kt[i];
+        v_a[i] = v_T9[3 * i];
+        v_b[i] = v_T9[3 * i + 1];
+        v_c[i] = v_T9[3 * i + 2];
+    }
+    v_c[2] += v_depth;
+    if (sabs(c[2]) > S(1e-12)) {
+        const S inv = S(1) / c[2];
+        v_c[0] += v_center[0] * inv;
+        v_c[1] += v_center[1] * inv;
+        v_c[2] -= (v_center[0] * c[0] + v_center[1] * c[1]) * inv * inv;
+    } else {
+        v_c[0] += v_center[0];
+        v_c[1] += v_center[1];
+    }
+    // x = KR y  =>  v_y = KR^T v_x
+    S g_a[3], g_b[3];
+    for (int j = 0; j < 3; ++j) {
+        v_mean[j] = KR[j] * v_c[0] + KR[3 + j] * v_c[1] + KR[6 + j] * v_c[2];
+        g_a[j] = KR[j] * v_a[0] + KR[3 + j] * v_a[1] + KR[6 + j] * v_a[2];
+        g_b[j] = KR[j] * v_b[0] + KR[3 + j] * v_b[1] + KR[6 + j] * v_b[2];
+    }
+    v_scale[0] = g_a[0] * R[0] + g_a[1] * R[3] + g_a[2] * R[6];
+    v_scale[1] = g_b[0] * R[1] + g_b[1] * R[4] + g_b[2] * R[7];
+    const S facing = R[2] * (mean[0] - cam.eye[0]) + R[5] * (mean[1] - cam.eye[1]) + R[8] * (mean[2] - cam.eye[2]);
+    const S flip = facing > S(0) ? S(-1) : S(1);
+    S vR[9];  // dL/dR, row-major: column 0 from a, column 1 from b, column 2 from the normal
+    for (int i = 0; i < 3; ++i) {
+        vR[3 * i] = scale[0] * g_a[i];
+        vR[3 * i + 1] = scale[1] * g_b[i];
+        vR[3 * i + 2] = flip * v_normal[i];
+    }
+    const S w = qn[0], x = qn[1], y = qn[2], z = qn[3];
+    S vq[4];
+    vq[0] = S(2) * (-z * vR[1] + y * vR[2] + z * vR[3] - x * vR[5] - y * vR[6] + x * vR[7]);
+    vq[1] = S(2) * (y * vR[1] + z * vR[2] + y * vR[3] - S(2) * x * vR[4] - w * vR[5] + z * vR[6] + w * vR[7] -
+                    S(2) * x * vR[8]);
+    vq[2] = S(2) * (-S(2) * y * vR[0] + x * vR[1] + w * vR[2] + x * vR[3] + z * vR[5] - w * vR[6] + z * vR[7] -
+                    S(2) * y * vR[8]);
+    vq[3] = S(2) * (-S(2) * z * vR[0] - w * vR[1] + x * vR[2] + w * vR[3] - S(2) * z * vR[4] + y * vR[5] +
+                    x * vR[6] + y * vR[7]);
+    // q / max(|q|, eps): (I - qn qn^T) / |q| above eps, I / eps below (torch.clamp_min passes no gradient)
+    if (qnorm > S(1e-12)) {
+        const S dot = vq[0] * w + vq[1] * x + vq[2] * y + vq[3] * z;
+        for (int i = 0; i < 4; ++i) v_quat[i] = (vq[i] - qn[i] * dot) / qnorm;
+    } else {
+        for (int i = 0; i < 4; ++i) v_quat[i] = vq[i] / S(1e-12);
+    }
+}
+
 // ---- per-surfel set-up ------------------------------------------------------------------------------------------
 // T9: rows m1, m2, m3 of M = K [R s_u t_u | R s_v t_v | R p + t] (row-major 3x3). The pixel planes are
 // h_x = x m3 - m1 and h_y = y m3 - m2, and c = h_x x h_y = x (m2 x m3) + y (m3 x m1) + m1 x m2: affine in (x, y).

@@ -1,8 +1,9 @@
 """Native tile rasterizers: C++ (OpenMP) on the CPU and CUDA on the GPU, built lazily from splatzoo/csrc/ (package data).
 
-The per-surfel set-up stays in PyTorch (`common.project`): autograd carries the gradients of T, centre, depth and
-normal back to means, quats and scales. The native op takes the visible surfels, sorted front to back, and its
-hand-written backward returns gradients of those per-surfel tensors (see csrc/surfel_math.h for the maths).
+On the CPU one call does everything (`render`): the camera-dependent set-up of common.project and
+common.screen_boxes, culling, the depth sort and the tile loop, each with a hand-written backward down to means,
+quats and scales (see csrc/surfel_math.h for the maths). On the GPU the set-up stays in PyTorch (`common.project`,
+autograd through it) and the native op takes the visible surfels, sorted front to back.
 
 The extension is compiled on first use with torch.utils.cpp_extension.load into a cache directory
 ($SPLATZOO_EXTENSIONS_DIR, else $TORCH_EXTENSIONS_DIR/splatzoo, else ~/.cache/splatzoo/torch_extensions), never at
@@ -194,6 +195,27 @@ class _RasterizeFn(torch.autograd.Function):
         return (None, None, None, *v, None, None)
 
 
+class _RenderCpuFn(torch.autograd.Function):
+    """Surfels -> the six image outputs on the CPU: projection, culling, sorting and the tile loop all in C++, with
+    the hand-written backward of each (csrc/ext.cpp render / render_backward)."""
+
+    @staticmethod
+    def forward(ctx, C, camera_tensors, width, height, wave_counts, means, quats, scales, opac, base, wv, wp, wa):
+        KR, Kt, eye = camera_tensors
+        out = C.render(means, quats, scales, opac, base, wv, wp, wa, KR, Kt, eye, width, height, wave_counts)
+        ctx.C, ctx.size, ctx.has_counts = C, (width, height), wave_counts is not None
+        ctx.save_for_backward(means, quats, scales, KR, Kt, eye, *out)
+        return tuple(out[:_N_PUBLIC])
+
+    @staticmethod
+    def backward(ctx, *grads):
+        t = ctx.saved_tensors
+        saved = list(t[6:])
+        g = [torch.zeros_like(o) if gr is None else gr for gr, o in zip(grads, saved[:_N_PUBLIC])]
+        v = ctx.C.render_backward(*t[:6], ctx.size[0], ctx.size[1], saved, g, ctx.has_counts)
+        return (None, None, None, None, None, *v)
+
+
 def rasterize_native(surfels: Surfels, camera: Camera, background=None, *, device_kind: str = "cpu") -> RenderOutput:
     """Render with the native tile rasterizer; same contract and maths as rasterize_reference."""
     C = load(device_kind)
@@ -207,6 +229,15 @@ def rasterize_native(surfels: Surfels, camera: Camera, background=None, *, devic
     cam = camera.to(s.means.device, s.means.dtype)
     H, W = cam.height, cam.width
     bg = background_tensor(background, s.means)
+    if device_kind == "cpu":
+        camera_tensors = (cam.K @ cam.R, cam.K @ cam.t, cam.center)
+        counts = None if s.wave_counts is None else s.wave_counts.to(torch.int32)
+        rgb, alpha, depth, median, normal, dist = _RenderCpuFn.apply(
+            C, camera_tensors, W, H, counts, s.means, s.quats, s.scales, s.opacities, s.base_color, s.wave_vectors,
+            s.wave_phases, s.wave_amplitudes)
+        rgb = rgb + (1 - alpha)[..., None] * bg
+        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist)
+    # CUDA: the per-surfel set-up in PyTorch (common.project), the tile loop native
     if s.num:
         proj = project(s, cam)
         vis = torch.nonzero(proj.visible).squeeze(1)
