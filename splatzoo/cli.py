@@ -166,8 +166,10 @@ def train_command(
                    scene_options=_scene_options(resolution, max_width, test_every, white_background))
     m = result.metrics
     if m:
+        waves = f"  {100 * m['wave_fraction']:.1f}% of the waves kept" if m.get("wave_fraction", 1.0) < 1.0 else ""
         typer.echo(f"{model}: PSNR {m['psnr']:.2f}  SSIM {m['ssim']:.4f}  LPIPS {m['lpips']:.4f}  "
-                   f"{m['num_primitives']} primitives  {m['fps']:.1f} FPS  -> {result.run_dir}")
+                   f"{m['num_primitives']} primitives{waves}  {m['fps']:.1f} FPS  {m['size_bytes'] / 1e6:.3f} MB  "
+                   f"-> {result.run_dir}")
 
 
 @app.command("eval")
