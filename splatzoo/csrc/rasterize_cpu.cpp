@@ -73,6 +73,8 @@ inline bool clip_box(const int* b, const TileRect& tr, int& c0, int& c1, int& r0
     return c0 <= c1 && r0 <= r1;
 }
 
+constexpr int LOCAL_GW = G_WAVES + G_PER_WAVE * SINCOS_CACHE;  // gradient rows up to this width live on the stack
+
 template <class S>
 struct RowAcc {
     S* g;
@@ -207,6 +209,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
     {
         TileScratch<S> sc;
         std::vector<PixelBwd<S>> px(TILE_PIXELS);
+        alignas(64) S local[LOCAL_GW];
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < nt; ++t) {
             const TileRect tr = tile_rect(t, W, H);
@@ -231,9 +234,11 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
             for (int pos = start + maxlast - 1; pos >= start; --pos) {
                 const int i = f.tile_list[pos];
                 S* row = partials + int64_t(pos) * GW;
-                std::memset(row, 0, sizeof(S) * GW);
                 int c0, c1, r0, r1;
-                if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
+                if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) {
+                    std::memset(row, 0, sizeof(S) * GW);
+                    continue;
+                }
                 const Geom<S>& gm = geom[i];
                 eval_rows(gm, sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
                 const S* n = s.normal + 3 * i;
@@ -243,21 +248,32 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                 const S* wa = s.wa + 3 * K * int64_t(i);
                 const int Ki = s.wcount ? s.wcount[i] : K;
                 const int rel = pos - start;
-                RowAcc<S> acc{row};
-                for (int r = r0; r <= r1; ++r)
-                    for (int c = c0; c <= c1; ++c) {
-                        const int p = r * TILE + c;
-                        const S a = sc.alpha[p];
-                        if (a == S(0) || rel >= px[p].last) continue;
-                        PairEval<S> e;
-                        eval_pair(gm, sc.xs[c], y0 + S(r), e);
-                        // the decision and the values blended come from eval_rows, exactly as in the forward
-                        e.alpha = a;
-                        e.u = sc.u[p];
-                        e.v = sc.v[p];
-                        e.z = sc.z[p];
-                        blend_backward(px[p], gm, e, n, base, wv, wp, wa, Ki, rel, acc);
-                    }
+                auto pixels = [&](RowAcc<S>& acc) {
+                    for (int r = r0; r <= r1; ++r)
+                        for (int c = c0; c <= c1; ++c) {
+                            const int p = r * TILE + c;
+                            const S a = sc.alpha[p];
+                            if (a == S(0) || rel >= px[p].last) continue;
+                            PairEval<S> e;
+                            eval_pair(gm, sc.xs[c], y0 + S(r), e);
+                            // the decision and the values blended come from eval_rows, exactly as in the forward
+                            e.alpha = a;
+                            e.u = sc.u[p];
+                            e.v = sc.v[p];
+                            e.z = sc.z[p];
+                            blend_backward(px[p], gm, e, n, base, wv, wp, wa, Ki, rel, acc);
+                        }
+                };
+                if (GW <= LOCAL_GW) {  // accumulate on the stack: the compiler knows it aliases nothing
+                    std::memset(local, 0, sizeof(S) * GW);
+                    RowAcc<S> acc{local};
+                    pixels(acc);
+                    std::memcpy(row, local, sizeof(S) * GW);
+                } else {
+                    std::memset(row, 0, sizeof(S) * GW);
+                    RowAcc<S> acc{row};
+                    pixels(acc);
+                }
             }
         }
         // sum each surfel's pair rows (surfel-major CSR), then map the slots to input gradients
