@@ -291,6 +291,15 @@ def test_adaptive_gabor_is_gabor_until_the_first_pruning():
     for name, p in plain.named_parameters():
         assert torch.equal(p, getattr(adaptive, name)), name
     assert torch.equal(render(plain).rgb, render(adaptive).rgb)
+    # and stays bit-identical through training steps (a rounding difference would grow chaotically)
+    opts = [torch.optim.Adam(m.optim_groups(1.0), lr=0.01, eps=1e-15) for m in (plain, adaptive)]
+    for _ in range(3):
+        for m, opt in zip((plain, adaptive), opts):
+            opt.zero_grad()
+            (rasterize(m.surfels(CAM), CAM, backend="cpu").rgb - 0.4).square().sum().backward()
+            opt.step()
+    for name, p in plain.named_parameters():
+        assert torch.equal(p, getattr(adaptive, name)), name
 
 
 def test_checkpoints_of_the_single_fold_format_still_load():

@@ -130,8 +130,10 @@ class GaborModel(SurfelModel):
         g = self.geometry()
         w = self.wave_weights
         if self.adaptive:
-            half = (w * self.active_slots()).sum(1, keepdim=True) / 2
-            base = (half + self.folded_weights[:, :1]) * self.color_a + (half + self.folded_weights[:, 1:]) * self.color_b
+            # written so that, before any pruning (all slots active, folded weights 0), every operation rounds as
+            # in gabor-K's expression below: the two runs stay bit-identical until the first pruning
+            base = (w * self.active_slots()).sum(1, keepdim=True) * (self.color_a + self.color_b) / 2
+            base = base + self.folded_weights[:, :1] * self.color_a + self.folded_weights[:, 1:] * self.color_b
             base = torch.where((self.wave_counts == 0)[:, None], self.color_a, base)  # wave-less: a 2DGS surfel
             directions = self.directions.to(w)[self.wave_index]  # [N,width,2]: each slot's own orientation
             counts = self.wave_counts
