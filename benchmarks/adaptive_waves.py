@@ -3,6 +3,7 @@
     python benchmarks/adaptive_waves.py SCENE [SCENE ...] [--out runs/bench-adaptive] [--iterations 1500]
         [--num-primitives 2000] [--size 128] [--views 24] [--threshold 0.01] [--sh]
     python benchmarks/adaptive_waves.py SCENE [SCENE ...] --timing [--render-sizes 128,512] [--repeats 5]
+    python benchmarks/adaptive_waves.py SCENE [SCENE ...] --train-speed
 
 Each scene: a synthetic dataset (size x size, `views` views), then `compare gabor gabor:prune_waves=T` (or, with
 --sh, `compare gabor gabor:sh_degree=3`) at a fixed primitive count without densification. Prints one table row per
@@ -34,10 +35,14 @@ def main(argv=None) -> int:
     ap.add_argument("--timing", action="store_true", help="only time the renders of runs trained earlier")
     ap.add_argument("--render-sizes", default="128,512")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--train-speed", action="store_true",
+                    help="only time training iterations 200-400 of gabor-4 and of adaptive gabor pruned from the start")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.timing:
         return timing(args)
+    if args.train_speed:
+        return train_speed(args)
     from splatzoo.compare import compare
     from splatzoo.data.synthetic import make_synthetic_scene
 
@@ -78,6 +83,32 @@ def timing(args) -> int:
                 model = loaded[k][0]
                 print(json.dumps({"scene": name, "model": k, "render_size": size, "render_ms": round(best[k], 2),
                                   **model.summary()}), flush=True)
+    return 0
+
+
+def train_speed(args) -> int:
+    """Seconds for iterations 200-400 of a 400-iteration run (fixed count), gabor-4 vs adaptive with prune_from 0,
+    interleaved `repeats` times, on each scene's data written by the training mode."""
+    import shutil
+    import tempfile
+
+    from splatzoo.training import TrainConfig, train
+
+    variants = {"gabor": {}, "adaptive": {"prune_waves": float(args.threshold), "prune_from": 0.0}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.scenes:
+            data = Path(args.out) / name / "data"
+            for rep in range(min(args.repeats, 2)):
+                for label, options in variants.items():
+                    out = Path(tmp) / label
+                    shutil.rmtree(out, ignore_errors=True)
+                    cfg = TrainConfig(iterations=400, num_primitives=args.num_primitives, densify=False,
+                                      log_every=50, eval_every=10 ** 9)
+                    res = train(data, "gabor", options, cfg, out, progress=False, evaluate_at_end=False)
+                    log = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
+                    t = {r["iteration"]: r["seconds"] for r in log if "seconds" in r}
+                    print(json.dumps({"scene": name, "model": label, "repeat": rep, "seconds_200_400":
+                                      round(t[400] - t[200], 2), **res.model.summary()}), flush=True)
     return 0
 
 
