@@ -16,14 +16,29 @@ from .training import TrainConfig, train
 
 @dataclass
 class QuickPreset:
-    """Small enough to finish in a few minutes on 2 CPU cores."""
+    """A small built-in scene and a short schedule (`--quick`). The default finishes `compare` in a few minutes on
+    2 CPU cores; `sweep` uses a smaller one (sweep.SWEEP_QUICK)."""
 
     scene: str = "sweater"
     views: int = 24
     width: int = 128
     height: int = 128
     iterations: int = 1500
-    num_primitives: int = 2000
+    num_primitives: int | None = 2000
+
+
+def builtin_scene(out: Path, name: str | None, preset: QuickPreset | None, *, seed: int = 0,
+                  progress: bool = True) -> Path:
+    """The built-in synthetic scene `name` (default: the preset's, else sweater), rendered once into
+    out/scene-<name> at the preset's size (full size without one); later calls reuse it."""
+    from .data.synthetic import make_synthetic_scene
+
+    name = name or (preset.scene if preset else "sweater")
+    data = Path(out) / f"scene-{name}"
+    if not (data / "sparse").exists():
+        kw = {"views": preset.views, "width": preset.width, "height": preset.height} if preset else {}
+        make_synthetic_scene(name, data, seed=seed, progress=progress, **kw)
+    return data
 
 
 def parse_model_arg(arg: str) -> tuple[str, str, dict]:
@@ -59,13 +74,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     out = Path(out)
     preset = QuickPreset() if quick else None
     if data is None:
-        from .data.synthetic import make_synthetic_scene
-
-        name = synthetic_scene or (preset.scene if preset else "sweater")
-        data = out / f"scene-{name}"
-        if not (data / "sparse").exists():
-            kw = {"views": preset.views, "width": preset.width, "height": preset.height} if preset else {}
-            make_synthetic_scene(name, data, seed=seed, **kw)
+        data = builtin_scene(out, synthetic_scene, preset, seed=seed, progress=progress)
     scene_options = dict(scene_options or {})
     scene = load_scene(data, **scene_options)
     iterations = iterations or (preset.iterations if preset else 30000)

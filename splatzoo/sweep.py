@@ -9,22 +9,15 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
+from .compare import QuickPreset, _figure, _save_figure, builtin_scene, compare
 from .errors import SplatzooError
 from .io import write_json, write_text
 
 
-@dataclass
-class SweepQuickPreset:
-    """A small grid point budget: the whole default grid in well under an hour on 2 CPU cores."""
-
-    scene: str = "sweater"
-    views: int = 16
-    width: int = 96
-    height: int = 96
-    iterations: int = 400
+# `--quick`: the whole default grid in well under an hour on 2 CPU cores (the grid sets the primitive counts)
+SWEEP_QUICK = QuickPreset(views=16, width=96, height=96, iterations=400, num_primitives=None)
 
 
 def parse_int_list(text, what: str) -> list[int]:
@@ -61,7 +54,6 @@ def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2
     Without `data` a built-in synthetic scene is rendered (sweater; --quick: 96x96, 16 views). Runs live in
     out/n<primitives>/runs/<label>; finished runs are reused, so an interrupted sweep picks up where it stopped.
     """
-    from .compare import compare
     from .zoo import get_model_spec, make_config
 
     waves = parse_int_list(n_waves, "--n-waves")
@@ -75,15 +67,9 @@ def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2
         except TypeError as e:
             raise SplatzooError(f"model {model!r} cannot be swept over n_waves ({e}); use a Gabor-family model") from e
     out = Path(out)
-    preset = SweepQuickPreset() if quick else None
+    preset = SWEEP_QUICK if quick else None
     if data is None:
-        from .data.synthetic import make_synthetic_scene
-
-        name = synthetic_scene or (preset.scene if preset else "sweater")
-        data = out / f"scene-{name}"
-        if not (data / "sparse").exists():
-            kw = {"views": preset.views, "width": preset.width, "height": preset.height} if preset else {}
-            make_synthetic_scene(name, data, seed=seed, progress=progress, **kw)
+        data = builtin_scene(out, synthetic_scene, preset, seed=seed, progress=progress)
     iterations = iterations or (preset.iterations if preset else 30000)
     labels = {k: grid_label(model, k, model_options) for k in waves}
     points, per_count = [], {}
@@ -156,8 +142,6 @@ def sweep_markdown(result: dict) -> str:
 
 
 def plot_pareto(points: list[dict], path, title: str = "") -> None:
-    from .compare import _figure, _save_figure
-
     plt = _figure()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     waves = sorted({p["n_waves"] for p in points})
