@@ -1,11 +1,14 @@
 // Raw-pointer interface between the torch bindings (ext.cpp) and the tile loops (rasterize_cpu.cpp,
-// rasterize_cuda.cu). Kept free of torch headers so the tile loops compile fast and nvcc needs no torch.
+// rasterize_cuda.cu), and the small pieces both loops share. Kept free of torch headers so the tile loops compile
+// fast and nvcc needs no torch.
 //
 // Surfels arrive compacted to the visible ones and sorted front to back by centre depth (stable), so a tile's
 // list in increasing surfel index is its depth order. Shapes: M surfels, K waves, image H x W.
 #pragma once
 
 #include <cstdint>
+
+#include "surfel_math.h"
 
 namespace sz {
 
@@ -53,8 +56,40 @@ struct GradArgs {
 inline int tiles_x(int W) { return (W + 15) / 16; }
 inline int tiles_y(int H) { return (H + 15) / 16; }
 
+// ---- shared by the CPU and CUDA tile loops ----
+// One surfel's colour inputs (its rows of the SurfelArgs arrays) and how many of its K waves it uses.
+template <class S>
+struct SurfelColour {
+    const S *normal, *base, *wv, *wp, *wa;
+    int K;
+};
+template <class S>
+SZ_HD SurfelColour<S> surfel_colour(const SurfelArgs<S>& s, int64_t i) {
+    return {s.normal + 3 * i, s.base + 3 * i, s.wv + 2 * s.K * i, s.wp + s.K * i, s.wa + 3 * s.K * i,
+            s.wcount ? s.wcount[i] : s.K};
+}
+
+// A pixel's finished forward state -> the outputs and the state the backward reads, at pixel index o.
+template <class S>
+SZ_HD void store_pixel(const FrameArgs<S>& f, int64_t o, const PixelFwd<S>& q) {
+    const S acc = S(1) - q.T;
+    for (int k = 0; k < 3; ++k) {
+        f.rgb[3 * o + k] = q.rgb[k];
+        f.normal[3 * o + k] = q.N[k];
+    }
+    f.alpha[o] = acc;
+    f.depth[o] = acc > S(0) ? q.D / acc : S(0);
+    f.median[o] = q.med >= 0 ? q.median : S(0);
+    f.dist[o] = q.dist;
+    f.Tfinal[o] = q.T;
+    f.tot[3 * o] = q.A;
+    f.tot[3 * o + 1] = q.M1;
+    f.tot[3 * o + 2] = q.M2;
+    f.last[o] = q.last;
+    f.med[o] = q.med;
+}
+
 // ---- CPU (OpenMP) ----
-template <class S> struct CameraArgs;  // surfel_math.h
 // The camera-dependent set-up of N surfels (project_surfel): T [N,3,3], centre [N,2], depth [N], normal [N,3],
 // boxes [N,4], visible [N]; and its backward (project_backward) to means [N,3], quats [N,4], scales [N,2].
 template <class S>

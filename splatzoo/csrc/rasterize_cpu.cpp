@@ -132,7 +132,7 @@ void cpu_bin(int M, int W, int H, const int* bounds, const int64_t* surfel_off, 
 
 template <class S>
 void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
-    const int W = s.W, H = s.H, K = s.K;
+    const int W = s.W, H = s.H;
     const int nt = tiles_x(W) * tiles_y(H);
     const Geom<S>* geom = reinterpret_cast<const Geom<S>*>(f.geom);
 #pragma omp parallel num_threads(threads)
@@ -156,12 +156,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                 int c0, c1, r0, r1;
                 if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
                 eval_rows(geom[i], sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
-                const S* n = s.normal + 3 * i;
-                const S* base = s.base + 3 * i;
-                const S* wv = s.wv + 2 * K * int64_t(i);
-                const S* wp = s.wp + K * int64_t(i);
-                const S* wa = s.wa + 3 * K * int64_t(i);
-                const int Ki = s.wcount ? s.wcount[i] : K;
+                const SurfelColour<S> sf = surfel_colour(s, i);
                 const int rel = pos - start;
                 for (int r = r0; r <= r1; ++r)
                     for (int c = c0; c <= c1; ++c) {
@@ -169,31 +164,13 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                         const S a = sc.alpha[p];
                         if (a == S(0) || px[p].done) continue;
                         S col[3], pre[3];
-                        wave_color(base, wv, wp, wa, Ki, sc.u[p], sc.v[p], col, pre);
-                        blend_forward(px[p], a, sc.z[p], col, n, rel);
+                        wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre);
+                        blend_forward(px[p], a, sc.z[p], col, sf.normal, rel);
                         active -= px[p].done;
                     }
             }
             for (int r = 0; r < tr.h; ++r)
-                for (int c = 0; c < tr.w; ++c) {
-                    const PixelFwd<S>& q = px[r * TILE + c];
-                    const int64_t o = int64_t(tr.y0 + r) * W + tr.x0 + c;
-                    const S acc = S(1) - q.T;
-                    for (int k = 0; k < 3; ++k) {
-                        f.rgb[3 * o + k] = q.rgb[k];
-                        f.normal[3 * o + k] = q.N[k];
-                    }
-                    f.alpha[o] = acc;
-                    f.depth[o] = acc > S(0) ? q.D / acc : S(0);
-                    f.median[o] = q.med >= 0 ? q.median : S(0);
-                    f.dist[o] = q.dist;
-                    f.Tfinal[o] = q.T;
-                    f.tot[3 * o] = q.A;
-                    f.tot[3 * o + 1] = q.M1;
-                    f.tot[3 * o + 2] = q.M2;
-                    f.last[o] = q.last;
-                    f.med[o] = q.med;
-                }
+                for (int c = 0; c < tr.w; ++c) store_pixel(f, int64_t(tr.y0 + r) * W + tr.x0 + c, px[r * TILE + c]);
         }
     }
 }
@@ -241,12 +218,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                 }
                 const Geom<S>& gm = geom[i];
                 eval_rows(gm, sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
-                const S* n = s.normal + 3 * i;
-                const S* base = s.base + 3 * i;
-                const S* wv = s.wv + 2 * K * int64_t(i);
-                const S* wp = s.wp + K * int64_t(i);
-                const S* wa = s.wa + 3 * K * int64_t(i);
-                const int Ki = s.wcount ? s.wcount[i] : K;
+                const SurfelColour<S> sf = surfel_colour(s, i);
                 const int rel = pos - start;
                 auto pixels = [&](RowAcc<S>& acc) {
                     for (int r = r0; r <= r1; ++r)
@@ -261,7 +233,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                             e.u = sc.u[p];
                             e.v = sc.v[p];
                             e.z = sc.z[p];
-                            blend_backward(px[p], gm, e, n, base, wv, wp, wa, Ki, rel, acc);
+                            blend_backward(px[p], gm, e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
                         }
                 };
                 if (GW <= LOCAL_GW) {  // accumulate on the stack: the compiler knows it aliases nothing

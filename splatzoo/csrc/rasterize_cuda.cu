@@ -58,13 +58,22 @@ __device__ __forceinline__ bool in_box(const int4& b, int x, int y) {
     return x >= b.x && x <= b.y && y >= b.z && y <= b.w;
 }
 
-template <class S>
-__global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameArgs<S> f) {
-    const int ntx = (s.W + TILE - 1) / TILE;
+// This thread's pixel: block t is tile t (row-major), thread i is pixel i of the tile (row-major).
+struct ThreadPixel {
+    int t, x, y;
+    bool inside;
+};
+__device__ __forceinline__ ThreadPixel thread_pixel(int W, int H) {
+    const int ntx = (W + TILE - 1) / TILE;
     const int t = blockIdx.x;
     const int x = (t % ntx) * TILE + int(threadIdx.x) % TILE;
     const int y = (t / ntx) * TILE + int(threadIdx.x) / TILE;
-    const bool inside = x < s.W && y < s.H;
+    return {t, x, y, x < W && y < H};
+}
+
+template <class S>
+__global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameArgs<S> f) {
+    const auto [t, x, y, inside] = thread_pixel(s.W, s.H);
     const S px = S(x) + S(0.5), py = S(y) + S(0.5);
     const int start = f.tile_start[t], end = f.tile_start[t + 1];
     __shared__ Batch<S> sh;
@@ -81,39 +90,18 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
             PairEval<S> e;
             eval_pair(sh.g[j], px, py, e);
             if (e.alpha == S(0)) continue;
-            const int64_t i = sh.id[j];
+            const SurfelColour<S> sf = surfel_colour(s, sh.id[j]);
             S col[3], pre[3];
-            wave_color(s.base + 3 * i, s.wv + 2 * s.K * i, s.wp + s.K * i, s.wa + 3 * s.K * i, (s.wcount ? s.wcount[i] : s.K), e.u, e.v,
-                       col, pre);
-            blend_forward(p, e.alpha, e.z, col, s.normal + 3 * i, base + j - start);
+            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, e.u, e.v, col, pre);
+            blend_forward(p, e.alpha, e.z, col, sf.normal, base + j - start);
         }
     }
-    if (!inside) return;
-    const int64_t o = int64_t(y) * s.W + x;
-    const S acc = S(1) - p.T;
-    for (int k = 0; k < 3; ++k) {
-        f.rgb[3 * o + k] = p.rgb[k];
-        f.normal[3 * o + k] = p.N[k];
-    }
-    f.alpha[o] = acc;
-    f.depth[o] = acc > S(0) ? p.D / acc : S(0);
-    f.median[o] = p.med >= 0 ? p.median : S(0);
-    f.dist[o] = p.dist;
-    f.Tfinal[o] = p.T;
-    f.tot[3 * o] = p.A;
-    f.tot[3 * o + 1] = p.M1;
-    f.tot[3 * o + 2] = p.M2;
-    f.last[o] = p.last;
-    f.med[o] = p.med;
+    if (inside) store_pixel(f, int64_t(y) * s.W + x, p);
 }
 
 template <class S>
 __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameArgs<S> f, GradArgs<S> g, S* gbuf) {
-    const int ntx = (s.W + TILE - 1) / TILE;
-    const int t = blockIdx.x;
-    const int x = (t % ntx) * TILE + int(threadIdx.x) % TILE;
-    const int y = (t / ntx) * TILE + int(threadIdx.x) / TILE;
-    const bool inside = x < s.W && y < s.H;
+    const auto [t, x, y, inside] = thread_pixel(s.W, s.H);
     const S px = S(x) + S(0.5), py = S(y) + S(0.5);
     const int start = f.tile_start[t];
     const int GW = grad_width(s.K);
@@ -144,9 +132,9 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
             eval_pair(sh.g[j], px, py, e);
             if (e.alpha == S(0)) continue;
             const int64_t i = sh.id[j];
+            const SurfelColour<S> sf = surfel_colour(s, i);
             AtomicAcc<S> acc{gbuf + i * GW};
-            blend_backward(p, sh.g[j], e, s.normal + 3 * i, s.base + 3 * i, s.wv + 2 * s.K * i, s.wp + s.K * i,
-                           s.wa + 3 * s.K * i, (s.wcount ? s.wcount[i] : s.K), rel, acc);
+            blend_backward(p, sh.g[j], e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
         }
     }
 }
