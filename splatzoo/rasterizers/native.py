@@ -227,16 +227,41 @@ def rasterize_native(surfels: Surfels, camera: Camera, background=None, *, devic
     if s.means.dtype not in (torch.float32, torch.float64):
         raise BackendUnavailableError(f"the native rasterizer supports float32 and float64, got {s.means.dtype}")
     cam = camera.to(s.means.device, s.means.dtype)
-    H, W = cam.height, cam.width
     bg = background_tensor(background, s.means)
-    if device_kind == "cpu":
-        camera_tensors = (cam.K @ cam.R, cam.K @ cam.t, cam.center)
-        counts = None if s.wave_counts is None else s.wave_counts.to(torch.int32)
-        rgb, alpha, depth, median, normal, dist = _RenderCpuFn.apply(
-            C, camera_tensors, W, H, counts, s.means, s.quats, s.scales, s.opacities, s.base_color, s.wave_vectors,
-            s.wave_phases, s.wave_amplitudes)
-        rgb = rgb + (1 - alpha)[..., None] * bg
-        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist)
+    render = _render_cpu if device_kind == "cpu" else _render_cuda
+    rgb, alpha, depth, median, normal, dist = render(C, s, cam)
+    rgb = rgb + (1 - alpha)[..., None] * bg
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist)
+
+
+def _render_cpu(C, s: Surfels, cam: Camera) -> tuple:
+    """The six outputs (before the background): projection, culling, sorting and the tile loop in one C++ call."""
+    camera_tensors = (cam.K @ cam.R, cam.K @ cam.t, cam.center)
+    return _RenderCpuFn.apply(C, camera_tensors, cam.width, cam.height, s.wave_counts, s.means, s.quats, s.scales,
+                              s.opacities, s.base_color, s.wave_vectors, s.wave_phases, s.wave_amplitudes)
+
+
+def _render_cuda(C, s: Surfels, cam: Camera) -> tuple:
+    """The six outputs (before the background): the per-surfel set-up in PyTorch (common.project), the tile loop
+    native."""
+    H, W = cam.height, cam.width
+    if s.num:
+        proj = project(s, cam)
+        vis = torch.nonzero(proj.visible).squeeze(1)
+        # front to back by centre depth, ties by index: the same order as the reference
+        order = vis[torch.sort(proj.depth.detach()[vis], stable=True).indices]
+    else:
+        order = torch.zeros(0, dtype=torch.long, device=s.means.device)
+    if order.numel() == 0:
+        z = s.means.new_zeros
+        # keep the graph connected so .backward() works on an empty render
+        tie = (s.means.sum() + s.opacities.sum() + s.base_color.sum()) * 0
+        return z(H, W, 3) + tie, z(H, W), z(H, W), z(H, W), z(H, W, 3), z(H, W)
+    counts = None if s.wave_counts is None else s.wave_counts[order].to(torch.int32).contiguous()
+    return _RasterizeFn.apply(
+        C, W, H, proj.T[order], proj.center_px[order], proj.depth[order], proj.normal[order],
+        s.opacities[order], s.base_color[order], s.wave_vectors[order], s.wave_phases[order],
+        s.wave_amplitudes[order], proj.boxes[order].detach(), counts)
     # CUDA: the per-surfel set-up in PyTorch (common.project), the tile loop native
     if s.num:
         proj = project(s, cam)
