@@ -180,6 +180,10 @@ class GaborModel(SurfelModel):
         fraction = 1.0 if ramp <= 0 else min(1.0, (step - first) / ramp)
         return self.prune_waves(fraction * float(self.config.prune_waves), optimizer)
 
+    def _mean_cos(self) -> torch.Tensor:
+        """[N,width]: cos(k.(u,v) + phi) averaged over u,v ~ N(0, I), = cos(phi) e^{-|k|^2/2}."""
+        return torch.cos(self.phases()) * torch.exp(-(2 * math.pi * self.wave_freqs) ** 2 / 2)
+
     @torch.no_grad()
     def wave_statistics(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(mean, contribution) of every stored wave slot, [N,width,3] and [N,width].
@@ -187,10 +191,9 @@ class GaborModel(SurfelModel):
         Over the surfel's Gaussian (u,v ~ N(0,I) in sigma units) the wave a cos(k.(u,v) + phi) has mean
         a cos(phi) e^{-|k|^2/2} and second moment a^2 (1 + cos(2 phi) e^{-2|k|^2}) / 2. contribution = opacity x the
         standard deviation (largest channel): how far the wave moves the surfel's colour away from its mean."""
-        w, phi = self.wave_weights, self.phases()
-        k2 = (2 * math.pi * self.wave_freqs) ** 2
-        amp = w[..., None] * ((self.color_a - self.color_b) / 2)[:, None, :]  # [N,width,3]
-        mean = amp * (torch.cos(phi) * torch.exp(-k2 / 2))[..., None]
+        phi, k2 = self.phases(), (2 * math.pi * self.wave_freqs) ** 2
+        amp = self.wave_weights[..., None] * ((self.color_a - self.color_b) / 2)[:, None, :]  # [N,width,3]
+        mean = amp * self._mean_cos()[..., None]
         second = amp ** 2 * ((1 + torch.cos(2 * phi) * torch.exp(-2 * k2)) / 2)[..., None]
         std = (second - mean ** 2).clamp_min(0).sqrt().amax(-1)
         return mean, torch.sigmoid(self.logit_opacity)[:, None] * std
@@ -213,7 +216,7 @@ class GaborModel(SurfelModel):
             return {"removed": 0, "active": int(on.sum())}
         # A removed wave's colour w[cA (1 + cos t)/2 + cB (1 - cos t)/2] has mean w[cA (1 + m)/2 + cB (1 - m)/2]
         # with m = cos(phi) e^{-|k|^2/2}: it adds w (1 + m)/2 to cA's weight and w (1 - m)/2 to cB's.
-        m = torch.cos(self.phases()) * torch.exp(-(2 * math.pi * self.wave_freqs) ** 2 / 2)
+        m = self._mean_cos()
         gone = w * removed
         self.folded_weights.add_(torch.stack([(gone * (1 + m)).sum(1), (gone * (1 - m)).sum(1)], 1) / 2)
         order = torch.sort((~keep).to(torch.int8), dim=1, stable=True).indices  # kept first, order preserved
