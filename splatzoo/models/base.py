@@ -38,7 +38,7 @@ class SplatModel(nn.Module):
     dimension num_primitives, initialise them in `init_from_points`, and implement `surfels(camera)`."""
 
     name: str = ""  # set from the registry spec when created through create_model
-    # names of integer buffers with one row per primitive (e.g. per-surfel wave counts): densification edits
+    # names of buffers with one row per primitive (e.g. per-surfel wave counts): densification and loading edit
     # them with the parameters; they are not trained
     primitive_buffers: tuple[str, ...] = ()
 
@@ -110,8 +110,8 @@ class SplatModel(nn.Module):
 
     @torch.no_grad()
     def set_rows(self, name: str, rows: torch.Tensor, value, optimizer: torch.optim.Optimizer | None = None) -> None:
-        """Overwrite rows of parameter `name` in place and restart their Adam moments (a re-parametrisation: the
-        old moments describe another quantity)."""
+        """Overwrite rows of parameter (or primitive buffer) `name` in place and restart their Adam moments (a
+        re-parametrisation: the old moments describe another quantity)."""
         p = getattr(self, name)
         p[rows] = value
         state = optimizer.state.get(p) if optimizer is not None else None
