@@ -90,7 +90,9 @@ def bench_command(
     json_path: str = typer.Option("benchmarks/results/rasterizer.json", "--json", help="Where to write the JSON results."),
     repeats: int = typer.Option(3, help="Timed repeats per measurement (the median is reported)."),
     backends: Optional[str] = typer.Option(None, help="Comma-separated subset of cuda,cpu,reference (default: all available)."),
-    quick: bool = typer.Option(False, "--quick", help="Only the 128x128 / 5k surfels scene."),
+    waves: str = typer.Option("0,4,4a", help="Comma-separated wave counts: 0 (2DGS), 4 (gabor), 4a (4 with mixed per-surfel counts)."),
+    quick: bool = typer.Option(False, "--quick", help="Only the 128x128 scenes (5k surfels, sparse and dense)."),
+    gpu: bool = typer.Option(False, "--gpu", help="The 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)."),
 ) -> None:
     """Benchmark the rasterizer backends (forward, forward+backward, pairs per second) and write a JSON report."""
     import importlib.util
@@ -98,12 +100,14 @@ def bench_command(
     bench_file = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_rasterizer.py"
     if not bench_file.is_file():
         raise SplatzooError(f"{bench_file} not found: `splatzoo bench` runs from a source checkout of splatzoo")
+    if quick and gpu:
+        raise SplatzooError("--quick and --gpu choose different scenes: pass one of them")
     spec = importlib.util.spec_from_file_location("splatzoo_bench_rasterizer", bench_file)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    configs = bench.CONFIGS[:1] if quick else bench.CONFIGS
-    bench.run_benchmark(backends=backends.split(",") if backends else None, configs=configs, repeats=repeats,
-                        json_path=json_path, echo=typer.echo)
+    configs = bench.CONFIGS[:2] if quick else bench.GPU_CONFIGS if gpu else bench.CONFIGS
+    bench.run_benchmark(backends=backends.split(",") if backends else None, waves=tuple(waves.split(",")),
+                        configs=configs, repeats=repeats, json_path=json_path, echo=typer.echo)
 
 
 # --- training and evaluation (train, eval, render, compare) ---------------------------------------------

@@ -11,7 +11,7 @@ import torch
 
 from .errors import SplatzooError
 from .io import atomic_path, write_json
-from .rasterizers import rasterize, resolve_backend
+from .rasterizers import rasterize, resolve_backend, select_backend
 from .types import Camera
 
 LPIPS_NET = "vgg"
@@ -128,6 +128,7 @@ def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str = LPIPS_NET,
                  lpips_convention: str = LPIPS_CONVENTION) -> dict:
     run_dir = Path(run_dir)
     model, scene, record = load_run(run_dir)
+    model = model.to(select_backend(backend).torch_device())
     old = json.loads((run_dir / "metrics.json").read_text()) if (run_dir / "metrics.json").exists() else {}
     metrics = evaluate(model, scene, backend=backend, train_seconds=old.get("train_seconds"),
                        iterations=record["train"]["iterations"], lpips_net=lpips_net, lpips_convention=lpips_convention)
@@ -170,6 +171,7 @@ def render_run(run_dir, *, split: str = "test", video: bool = False, backend: st
     """Write the split's renders as PNG (and an orbit video as mp4); returns the written paths."""
     run_dir = Path(run_dir)
     model, scene, _ = load_run(run_dir)
+    model = model.to(select_backend(backend).torch_device())
     if split not in ("test", "train"):
         raise SplatzooError(f"unknown split {split!r}; use test or train")
     paths = save_test_renders(model, scene, run_dir / "renders", backend=backend, split=split)

@@ -43,3 +43,40 @@ def sphere_and_wall(n: int, width: int = 128, height: int = 128, K: int = 0, see
     wp = r(n, K) * 2 * math.pi
     wa = (r(n, K, 3) - 0.5) * 0.6
     return Surfels(means, quats, scales, opac, color, wv, wp, wa).to(dtype=dtype), cam
+
+
+def dense_overlap(n: int = 5000, width: int = 128, height: int = 128, K: int = 0, seed: int = 0, dtype=torch.float32,
+                  px_sigma: tuple[float, float] = (1.5, 5.0), max_tilt_deg: float = 50.0) -> tuple[Surfels, Camera]:
+    """n surfels spread uniformly over the image at camera depth 2-4, each px_sigma pixels across, opacity 0.1-0.95,
+    tilted up to max_tilt_deg from facing the camera: many overlapping semi-transparent layers per pixel, the case
+    where a tile loop's per-pair cost dominates."""
+    g = torch.Generator().manual_seed(seed)
+    d64 = torch.float64
+    r = lambda *s: torch.rand(*s, generator=g, dtype=d64)  # noqa: E731
+    cam = Camera.look_at((0.0, 0.0, -4.0), (0.0, 0.0, 0.0), fov_deg=60.0, width=width, height=height)
+    K_cam = cam.K.double()
+    f = float(K_cam[0, 0])
+    depth = 2.0 + 2.0 * r(n)
+    px = torch.stack([r(n) * width, r(n) * height], 1)
+    x_cam = (px[:, 0] - float(K_cam[0, 2])) / f * depth
+    y_cam = (px[:, 1] - float(K_cam[1, 2])) / float(K_cam[1, 1]) * depth
+    p_cam = torch.stack([x_cam, y_cam, depth], 1)
+    R, t = cam.R.double(), cam.t.double()
+    means = (p_cam - t) @ R  # camera -> world
+    tilt = torch.deg2rad(max_tilt_deg * r(n))
+    az = 2 * math.pi * r(n)
+    n_cam = torch.stack([torch.sin(tilt) * torch.cos(az), torch.sin(tilt) * torch.sin(az), -torch.cos(tilt)], 1)
+    quats = normals_to_quats(n_cam @ R)
+    a = r(n) * math.pi  # spin about the normal
+    c, s_ = torch.cos(a), torch.sin(a)
+    quats = torch.stack([quats[:, 0] * c - quats[:, 3] * s_, quats[:, 1] * c + quats[:, 2] * s_,
+                         quats[:, 2] * c - quats[:, 1] * s_, quats[:, 3] * c + quats[:, 0] * s_], 1)
+    scales = (px_sigma[0] + (px_sigma[1] - px_sigma[0]) * r(n, 2)) * depth[:, None] / f
+    opac = 0.1 + 0.85 * r(n)
+    color = r(n, 3)
+    freq = 0.2 + 1.5 * r(n, K)
+    th = r(n, K) * math.pi
+    wv = torch.stack([2 * math.pi * freq * torch.cos(th), 2 * math.pi * freq * torch.sin(th)], -1)
+    wp = r(n, K) * 2 * math.pi
+    wa = (r(n, K, 3) - 0.5) * 0.6
+    return Surfels(means, quats, scales, opac, color, wv, wp, wa).to(dtype=dtype), cam

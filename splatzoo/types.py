@@ -64,6 +64,10 @@ class Camera:
         return replace(self, world_to_camera=self.world_to_camera.to(device=device, dtype=dtype),
                        K=self.K.to(device=device, dtype=dtype))
 
+    def detach(self) -> "Camera":
+        """The same camera with its tensors cut from any autograd graph (rasterizers take cameras as constants)."""
+        return replace(self, world_to_camera=self.world_to_camera.detach(), K=self.K.detach())
+
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by `factor` (e.g. 0.5 halves width and height)."""
         w, h = max(1, round(self.width * factor)), max(1, round(self.height * factor))

@@ -11,25 +11,37 @@ sys.path.insert(0, str(Path(__file__).parent))  # the shared scene helpers in te
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
+# Every backend, the test-only emulated CUDA kernels included. Parametrising by name builds nothing at collection:
+# the fixtures below build (or skip, for a CUDA device that is not there) when a test runs.
+ALL_BACKENDS = ("reference", "cpu", "cuda-emulated", "cuda")
+NATIVE_BACKENDS = ("cpu", "cuda-emulated", "cuda")
 
-def native_backends() -> list[str]:
-    """Native backends usable here (building the extension once per session)."""
-    from splatzoo.rasterizers import native
 
-    names = []
-    try:
-        if native.cpu_available():
-            names.append("cpu")
-    except Exception:
-        pass
-    try:
-        if native.cuda_available():
-            names.append("cuda")
-    except Exception:
-        pass
-    return names
+def backend_for_test(name: str):
+    """The registered backend `name`, ready to run: skipped only for want of a GPU; a build failure fails."""
+    from splatzoo.rasterizers import BACKENDS
+
+    b = BACKENDS.get(name)
+    if b.device == "cuda" and not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device")
+    reason = b.unavailable_reason()
+    if reason is not None:
+        pytest.fail(f"the {name} rasterizer backend cannot run here: {reason}")
+    return b
 
 
 def pytest_generate_tests(metafunc):
     if "any_backend" in metafunc.fixturenames:
-        metafunc.parametrize("any_backend", ["reference"] + native_backends())
+        metafunc.parametrize("any_backend", ALL_BACKENDS, indirect=True)
+    if "native_backend" in metafunc.fixturenames:
+        metafunc.parametrize("native_backend", NATIVE_BACKENDS, indirect=True)
+
+
+@pytest.fixture
+def any_backend(request):
+    return backend_for_test(request.param)
+
+
+@pytest.fixture
+def native_backend(request):
+    return backend_for_test(request.param)

@@ -1,9 +1,13 @@
-// Torch bindings of the native tile rasterizer: forward(...) and backward(...) on CPU tensors, and on CUDA tensors
-// when built with SPLATZOO_WITH_CUDA. splatzoo/rasterizers/native.py wraps them in a torch.autograd.Function.
+// Torch bindings of the native tile rasterizer: render(...) and render_backward(...), one pipeline on three devices:
+// the C++ loops on CPU tensors, the CUDA kernels on CUDA tensors (builds with SPLATZOO_WITH_CUDA), and the same CUDA
+// kernels under the host emulation on CPU tensors (emulated=True; tests only). splatzoo/rasterizers/native.py wraps
+// them in a torch.autograd.Function. Everything crossing the seam is named: a Settings struct, dicts of tensors.
 #include <torch/extension.h>
 
 #include <climits>
+#include <map>
 #include <optional>
+#include <string>
 
 #include "rasterize.h"
 #include "surfel_math.h"
@@ -15,228 +19,53 @@
 namespace {
 
 using at::Tensor;
+using TensorMap = std::map<std::string, Tensor>;
 
-// Inputs in the order of the Python call; all [M,...] of one floating dtype on one device.
-struct Inputs {
-    Tensor T, center, depth, normal, opac, base, wv, wp, wa, boxes;
-    Tensor wc;  // int32 [M] waves in use per surfel, or undefined: all K
-    int64_t M, K, W, H;
-};
+enum class Device { Cpu, Gpu, Emulated };
 
-Inputs check_inputs(const Tensor& T, const Tensor& center, const Tensor& depth, const Tensor& normal,
-                    const Tensor& opac, const Tensor& base, const Tensor& wv, const Tensor& wp, const Tensor& wa,
-                    const Tensor& boxes, int64_t W, int64_t H, const std::optional<Tensor>& wave_counts) {
-    const int64_t M = T.size(0);
-    const int64_t K = wv.dim() == 3 ? wv.size(1) : -1;
-    auto want = [&](const Tensor& t, std::vector<int64_t> shape, const char* name) {
-        TORCH_CHECK(t.sizes().vec() == shape, "splatzoo native rasterizer: ", name, " must have shape ", at::IntArrayRef(shape),
-                    ", got ", t.sizes());
-        TORCH_CHECK(t.scalar_type() == T.scalar_type() && t.device() == T.device(), "splatzoo native rasterizer: ", name,
-                    " must be ", T.scalar_type(), " on ", T.device(), " like T");
-    };
-    TORCH_CHECK(T.scalar_type() == at::kFloat || T.scalar_type() == at::kDouble,
-                "splatzoo native rasterizer: float32 or float64 tensors expected, got ", T.scalar_type());
-    TORCH_CHECK(K >= 0, "splatzoo native rasterizer: wave_vectors must be [M,K,2]");
-    TORCH_CHECK(W >= 1 && H >= 1 && W <= (1 << 20) && H <= (1 << 20), "splatzoo native rasterizer: bad image size ", W, "x", H);
-    TORCH_CHECK(M < INT_MAX, "splatzoo native rasterizer: too many surfels");
-    want(T, {M, 3, 3}, "T");
-    want(center, {M, 2}, "center_px");
-    want(depth, {M}, "depth");
-    want(normal, {M, 3}, "normal");
-    want(opac, {M}, "opacities");
-    want(base, {M, 3}, "base_color");
-    want(wv, {M, K, 2}, "wave_vectors");
-    want(wp, {M, K}, "wave_phases");
-    want(wa, {M, K, 3}, "wave_amplitudes");
-    want(boxes, {M, 4}, "boxes");
-    Tensor wc;
-    if (wave_counts.has_value() && wave_counts->defined()) {
-        wc = *wave_counts;
-        TORCH_CHECK(wc.scalar_type() == at::kInt && wc.device() == T.device() && wc.sizes().vec() == std::vector<int64_t>{M},
-                    "splatzoo native rasterizer: wave_counts must be int32 [", M, "] on ", T.device(), ", got ",
-                    wc.scalar_type(), " ", wc.sizes(), " on ", wc.device());
-        wc = wc.contiguous();
-        if (M > 0 && wc.device().is_cpu()) {  // an out-of-range count would read past the surfel's row
-            TORCH_CHECK(wc.min().item<int>() >= 0 && wc.max().item<int>() <= K,
-                        "splatzoo native rasterizer: wave_counts must lie in [0, K=", K, "]");
-        }
-    }
-    return {T.contiguous(), center.contiguous(), depth.contiguous(), normal.contiguous(), opac.contiguous(),
-            base.contiguous(), wv.contiguous(), wp.contiguous(), wa.contiguous(), boxes.contiguous(), wc, M, K, W, H};
-}
-
-template <class S>
-sz::SurfelArgs<S> surfel_args(const Inputs& in) {
-    return {int(in.M), int(in.K), int(in.W), int(in.H),
-            in.T.data_ptr<S>(), in.center.data_ptr<S>(), in.depth.data_ptr<S>(), in.normal.data_ptr<S>(),
-            in.opac.data_ptr<S>(), in.base.data_ptr<S>(), in.wv.data_ptr<S>(), in.wp.data_ptr<S>(),
-            in.wa.data_ptr<S>(), in.boxes.data_ptr<S>(), in.wc.defined() ? in.wc.data_ptr<int>() : nullptr};
-}
-
-// Outputs and saved state, in the order returned to Python.
-enum : int { O_RGB, O_ALPHA, O_DEPTH, O_MEDIAN, O_NORMAL, O_DIST, S_TFINAL, S_TOT, S_LAST, S_MED, S_GEOM, S_BOUNDS,
-             S_TILE_START, S_TILE_LIST, S_PAIR_POS, S_SURFEL_OFF, N_OUT };
-
-template <class S>
-sz::FrameArgs<S> frame_args(std::vector<Tensor>& o) {
-    return {o[S_GEOM].data_ptr<S>(), o[S_BOUNDS].data_ptr<int>(), o[S_TILE_START].data_ptr<int>(),
-            o[S_TILE_LIST].data_ptr<int>(), o[O_RGB].data_ptr<S>(), o[O_ALPHA].data_ptr<S>(),
-            o[O_DEPTH].data_ptr<S>(), o[O_MEDIAN].data_ptr<S>(), o[O_NORMAL].data_ptr<S>(),
-            o[O_DIST].data_ptr<S>(), o[S_TFINAL].data_ptr<S>(), o[S_TOT].data_ptr<S>(),
-            o[S_LAST].data_ptr<int>(), o[S_MED].data_ptr<int>()};
-}
-
-std::vector<Tensor> alloc_outputs(const Inputs& in) {
-    auto f = in.T.options();
-    auto i32 = f.dtype(at::kInt);
-    const int64_t H = in.H, W = in.W;
-    std::vector<Tensor> o(N_OUT);
-    o[O_RGB] = at::empty({H, W, 3}, f);
-    o[O_ALPHA] = at::empty({H, W}, f);
-    o[O_DEPTH] = at::empty({H, W}, f);
-    o[O_MEDIAN] = at::empty({H, W}, f);
-    o[O_NORMAL] = at::empty({H, W, 3}, f);
-    o[O_DIST] = at::empty({H, W}, f);
-    o[S_TFINAL] = at::empty({H, W}, f);
-    o[S_TOT] = at::empty({H, W, 3}, f);
-    o[S_LAST] = at::empty({H, W}, i32);
-    o[S_MED] = at::empty({H, W}, i32);
-    o[S_GEOM] = at::empty({in.M, sz::GEOM}, f);
-    o[S_BOUNDS] = at::empty({in.M, 4}, i32);
-    o[S_TILE_START] = at::empty({int64_t(sz::tiles_x(int(W))) * sz::tiles_y(int(H)) + 1}, i32);
-    return o;
-}
-
-std::vector<Tensor> forward_cpu(const Inputs& in) {
-    std::vector<Tensor> o = alloc_outputs(in);
-    const int threads = at::get_num_threads();
-    o[S_SURFEL_OFF] = at::empty({in.M + 1}, in.T.options().dtype(at::kLong));
-    AT_DISPATCH_FLOATING_TYPES(in.T.scalar_type(), "splatzoo_forward_cpu", [&] {
-        auto s = surfel_args<scalar_t>(in);
-        const int64_t P = sz::cpu_prepare<scalar_t>(s, o[S_GEOM].data_ptr<scalar_t>(), o[S_BOUNDS].data_ptr<int>(),
-                                                     o[S_SURFEL_OFF].data_ptr<int64_t>(), threads);
-        TORCH_CHECK(P < INT_MAX, "splatzoo native rasterizer: ", P,
-                    " (tile, surfel) pairs exceed 2^31; render at a lower resolution or with fewer/smaller surfels");
-        auto i32 = in.T.options().dtype(at::kInt);
-        o[S_TILE_LIST] = at::empty({P}, i32);
-        o[S_PAIR_POS] = at::empty({P}, i32);
-        sz::cpu_bin(int(in.M), int(in.W), int(in.H), o[S_BOUNDS].data_ptr<int>(), o[S_SURFEL_OFF].data_ptr<int64_t>(),
-                    o[S_TILE_START].data_ptr<int>(), o[S_TILE_LIST].data_ptr<int>(), o[S_PAIR_POS].data_ptr<int>());
-        sz::cpu_forward<scalar_t>(s, frame_args<scalar_t>(o), threads);
-    });
-    return o;
-}
-
+// A CUDA entry point (rasterize.h) on the GPU, or under the host emulation.
 #ifdef SPLATZOO_WITH_CUDA
-std::vector<Tensor> forward_cuda(const Inputs& in) {
-    std::vector<Tensor> o = alloc_outputs(in);
-    void* stream = c10::cuda::getCurrentCUDAStream().stream();
-    auto i64 = in.T.options().dtype(at::kLong);
-    Tensor count = at::empty({in.M}, in.T.options().dtype(at::kInt));
-    AT_DISPATCH_FLOATING_TYPES(in.T.scalar_type(), "splatzoo_prepare_cuda", [&] {
-        sz::cuda_prepare<scalar_t>(surfel_args<scalar_t>(in), o[S_GEOM].data_ptr<scalar_t>(),
-                                   o[S_BOUNDS].data_ptr<int>(), count.data_ptr<int>(), stream);
-    });
-    // Binning with ATen ops: one key tile * M + surfel per pair, sorted; surfel order is depth order.
-    const int64_t ntx = sz::tiles_x(int(in.W)), nt = ntx * sz::tiles_y(int(in.H));
-    Tensor count64 = count.to(at::kLong);
-    Tensor offsets = at::cumsum(count64, 0);
-    const int64_t P = in.M ? offsets[-1].item<int64_t>() : 0;
-    TORCH_CHECK(P < INT_MAX, "splatzoo native rasterizer: ", P, " (tile, surfel) pairs exceed 2^31");
-    if (P > 0) {
-        Tensor pair_surfel = at::repeat_interleave(at::arange(in.M, i64), count64, 0, P);
-        Tensor local = at::arange(P, i64) - (offsets - count64).index_select(0, pair_surfel);
-        Tensor b = o[S_BOUNDS].to(at::kLong).index_select(0, pair_surfel);
-        Tensor tx0 = at::floor_divide(b.select(1, 0), sz::TILE), tx1 = at::floor_divide(b.select(1, 1), sz::TILE);
-        Tensor ty0 = at::floor_divide(b.select(1, 2), sz::TILE);
-        Tensor wt = tx1 - tx0 + 1;
-        Tensor tile = (ty0 + at::floor_divide(local, wt)) * ntx + tx0 + at::remainder(local, wt);
-        Tensor key = std::get<0>(at::sort(tile * in.M + pair_surfel));
-        o[S_TILE_LIST] = at::remainder(key, in.M).to(at::kInt);
-        o[S_TILE_START] = at::searchsorted(at::floor_divide(key, in.M), at::arange(nt + 1, i64)).to(at::kInt);
-    } else {
-        o[S_TILE_LIST] = at::empty({0}, in.T.options().dtype(at::kInt));
-        o[S_TILE_START].zero_();
-    }
-    o[S_PAIR_POS] = at::empty({0}, in.T.options().dtype(at::kInt));
-    o[S_SURFEL_OFF] = at::empty({0}, i64);
-    AT_DISPATCH_FLOATING_TYPES(in.T.scalar_type(), "splatzoo_forward_cuda", [&] {
-        sz::cuda_forward<scalar_t>(surfel_args<scalar_t>(in), frame_args<scalar_t>(o), stream);
-    });
-    return o;
-}
-#endif
-
-// forward(T, center_px, depth, normal, opacities, base_color, wave_vectors, wave_phases, wave_amplitudes, boxes,
-//         width, height, wave_counts=None) -> [rgb, alpha, depth, median_depth, normal, distortion, *saved]
-std::vector<Tensor> forward(const Tensor& T, const Tensor& center, const Tensor& depth, const Tensor& normal,
-                            const Tensor& opac, const Tensor& base, const Tensor& wv, const Tensor& wp,
-                            const Tensor& wa, const Tensor& boxes, int64_t W, int64_t H,
-                            const std::optional<Tensor>& wave_counts) {
-    Inputs in = check_inputs(T, center, depth, normal, opac, base, wv, wp, wa, boxes, W, H, wave_counts);
-    if (T.is_cuda()) {
-#ifdef SPLATZOO_WITH_CUDA
-        return forward_cuda(in);
+#define SZ_KERNELS(dev, fn, ...) ((dev) == Device::Gpu ? sz::gpu::fn(__VA_ARGS__) : sz::emu::fn(__VA_ARGS__))
 #else
-        TORCH_CHECK(false, "splatzoo native rasterizer: this build has no CUDA support");
+#define SZ_KERNELS(dev, fn, ...) sz::emu::fn(__VA_ARGS__)
 #endif
+
+constexpr const char* OUTPUTS[] = {"rgb", "alpha", "depth", "median_depth", "normal", "distortion"};
+
+Device device_of(const Tensor& t, bool emulated) {
+    if (t.is_cuda()) {
+#ifndef SPLATZOO_WITH_CUDA
+        TORCH_CHECK(false, "splatzoo: this build of the native rasterizer has no CUDA support, but the surfels are on ",
+                    t.device(), "; use the cuda backend's build or move the surfels to the CPU");
+#endif
+        TORCH_CHECK(!emulated, "splatzoo: the emulated CUDA kernels run on CPU tensors, got ", t.device());
+        return Device::Gpu;
     }
-    TORCH_CHECK(T.device().is_cpu(), "splatzoo native rasterizer: unsupported device ", T.device());
-    return forward_cpu(in);
+    TORCH_CHECK(t.device().is_cpu(), "splatzoo: unsupported device ", t.device());
+    return emulated ? Device::Emulated : Device::Cpu;
 }
 
-// backward(inputs..., width, height, saved (10 tensors from forward, S_TFINAL..), grads of the 6 outputs,
-//          wave_counts=None) (gradients of waves a surfel does not use are 0)
-// -> [v_T, v_center, v_depth, v_normal, v_opacities, v_base, v_wave_vectors, v_wave_phases, v_wave_amplitudes]
-std::vector<Tensor> backward(const Tensor& T, const Tensor& center, const Tensor& depth, const Tensor& normal,
-                             const Tensor& opac, const Tensor& base, const Tensor& wv, const Tensor& wp,
-                             const Tensor& wa, const Tensor& boxes, int64_t W, int64_t H, std::vector<Tensor> outs,
-                             std::vector<Tensor> grads, const std::optional<Tensor>& wave_counts) {
-    Inputs in = check_inputs(T, center, depth, normal, opac, base, wv, wp, wa, boxes, W, H, wave_counts);
-    TORCH_CHECK(int(outs.size()) == N_OUT && grads.size() == 6, "splatzoo native rasterizer: backward got ",
-                outs.size(), " saved tensors and ", grads.size(), " gradients");
-    for (auto& g : grads) g = g.to(T.scalar_type()).contiguous();
-    std::vector<Tensor> v = {at::empty_like(in.T), at::empty_like(in.center), at::empty_like(in.depth),
-                             at::empty_like(in.normal), at::empty_like(in.opac), at::empty_like(in.base),
-                             at::empty_like(in.wv), at::empty_like(in.wp), at::empty_like(in.wa)};
-    if (in.M == 0) return v;
-    const int GW = sz::grad_width(int(in.K));
-    AT_DISPATCH_FLOATING_TYPES(T.scalar_type(), "splatzoo_backward", [&] {
-        auto s = surfel_args<scalar_t>(in);
-        auto f = frame_args<scalar_t>(outs);
-        sz::GradArgs<scalar_t> g{grads[0].data_ptr<scalar_t>(), grads[1].data_ptr<scalar_t>(),
-                                 grads[2].data_ptr<scalar_t>(), grads[3].data_ptr<scalar_t>(),
-                                 grads[4].data_ptr<scalar_t>(), grads[5].data_ptr<scalar_t>(),
-                                 v[0].data_ptr<scalar_t>(), v[1].data_ptr<scalar_t>(), v[2].data_ptr<scalar_t>(),
-                                 v[3].data_ptr<scalar_t>(), v[4].data_ptr<scalar_t>(), v[5].data_ptr<scalar_t>(),
-                                 v[6].data_ptr<scalar_t>(), v[7].data_ptr<scalar_t>(), v[8].data_ptr<scalar_t>()};
-        if (T.is_cuda()) {
+void* stream_for(Device dev) {
 #ifdef SPLATZOO_WITH_CUDA
-            Tensor gbuf = at::zeros({in.M, GW}, in.T.options());
-            sz::cuda_backward<scalar_t>(s, f, g, gbuf.data_ptr<scalar_t>(),
-                                        c10::cuda::getCurrentCUDAStream().stream());
-#else
-            TORCH_CHECK(false, "splatzoo native rasterizer: this build has no CUDA support");
+    if (dev == Device::Gpu) return c10::cuda::getCurrentCUDAStream().stream();
 #endif
-        } else {
-            const int64_t P = outs[S_TILE_LIST].numel();
-            Tensor partials = at::empty({P, GW}, in.T.options());
-            sz::cpu_backward<scalar_t>(s, f, g, outs[S_SURFEL_OFF].data_ptr<int64_t>(),
-                                       outs[S_PAIR_POS].data_ptr<int>(), partials.data_ptr<scalar_t>(),
-                                       at::get_num_threads());
-        }
-    });
-    return v;
+    return nullptr;
 }
 
-// ---- the whole CPU render in one call: projection, culling, depth sort, tile rasterizer ------------------------
-// Moves the per-surfel set-up (common.project, common.screen_boxes, the sort and the gathers, and their autograd)
-// out of Python, where its ~100 small tensor ops cost as much as the tile loop on small images.
+const Tensor& need(const TensorMap& m, const std::string& key) {
+    auto it = m.find(key);
+    TORCH_CHECK(it != m.end(), "splatzoo render_backward: the saved state has no ", key,
+                " (state from another splatzoo version?)");
+    return it->second;
+}
 
 template <class S>
 sz::CameraArgs<S> camera_args(const Tensor& KR, const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H) {
+    TORCH_CHECK(KR.numel() == 9 && Kt.numel() == 3 && eye.numel() == 3,
+                "splatzoo render: camera tensors KR [3,3], Kt [3], eye [3] expected");
+    auto host = [](const Tensor& t) { return t.detach().to(at::kCPU, c10::CppTypeToScalarType<S>::value).contiguous(); };
+    Tensor kr = host(KR), kt = host(Kt), e = host(eye);
     sz::CameraArgs<S> c;
-    Tensor kr = KR.contiguous(), kt = Kt.contiguous(), e = eye.contiguous();
     for (int i = 0; i < 9; ++i) c.KR[i] = kr.data_ptr<S>()[i];
     for (int i = 0; i < 3; ++i) {
         c.Kt[i] = kt.data_ptr<S>()[i];
@@ -247,96 +76,245 @@ sz::CameraArgs<S> camera_args(const Tensor& KR, const Tensor& Kt, const Tensor& 
     return c;
 }
 
-void check_camera(const Tensor& means, const Tensor& KR, const Tensor& Kt, const Tensor& eye) {
-    TORCH_CHECK(means.device().is_cpu(), "splatzoo render: CPU tensors expected");
-    TORCH_CHECK(means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble,
-                "splatzoo render: float32 or float64 tensors expected, got ", means.scalar_type());
-    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "splatzoo render: means must be [N,3]");
-    for (const Tensor* t : {&KR, &Kt, &eye})
-        TORCH_CHECK(t->scalar_type() == means.scalar_type() && t->device().is_cpu(),
-                    "splatzoo render: camera tensors must be ", means.scalar_type(), " on the CPU");
-    TORCH_CHECK(KR.numel() == 9 && Kt.numel() == 3 && eye.numel() == 3, "splatzoo render: KR [3,3], Kt [3], eye [3]");
+// The visible surfels' tensors (compacted, front to back) as the tile loops read them.
+template <class S>
+sz::SurfelArgs<S> surfel_args(const sz::Settings& st, const TensorMap& c, int64_t W, int64_t H) {
+    const Tensor& wv = need(c, "wave_vectors");
+    auto wc = c.find("wave_counts");
+    return {st, int(wv.size(0)), int(wv.size(1)), int(W), int(H),
+            need(c, "T").data_ptr<S>(), need(c, "centers").data_ptr<S>(), need(c, "center_depths").data_ptr<S>(),
+            need(c, "normals").data_ptr<S>(), need(c, "opacities").data_ptr<S>(), need(c, "base_color").data_ptr<S>(),
+            wv.data_ptr<S>(), need(c, "wave_phases").data_ptr<S>(), need(c, "wave_amplitudes").data_ptr<S>(),
+            need(c, "boxes").data_ptr<S>(), wc != c.end() ? wc->second.data_ptr<int>() : nullptr};
 }
 
-// render(means, quats, scales, opacities, base_color, wave_vectors, wave_phases, wave_amplitudes, KR, Kt, eye,
-//        width, height, wave_counts=None)
-// -> [rgb, alpha, depth, median_depth, normal, distortion, *saved (N_OUT - 6), T, center, depth, normal, opacities,
-//     base, wave_vectors, wave_phases, wave_amplitudes, boxes, wave_counts (compact, or empty), order]
-// The compact tensors hold the visible surfels front to back; order maps them to input rows.
-std::vector<Tensor> render(const Tensor& means, const Tensor& quats, const Tensor& scales, const Tensor& opac,
-                           const Tensor& base, const Tensor& wv, const Tensor& wp, const Tensor& wa, const Tensor& KR,
-                           const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H,
-                           const std::optional<Tensor>& wave_counts) {
-    check_camera(means, KR, Kt, eye);
+// The frame: binning, per-pixel saved state and, given `out` (the forward), the outputs to write. The backward
+// passes none: it reads the saved state and the depth output only.
+template <class S>
+sz::FrameArgs<S> frame_args(const TensorMap& st, const TensorMap* out) {
+    auto p = [&](const TensorMap& m, const char* k) { return need(m, k).data_ptr<S>(); };
+    auto o = [&](const char* k) { return out ? p(*out, k) : nullptr; };
+    auto i = [&](const char* k) { return need(st, k).data_ptr<int>(); };
+    return {p(st, "geom"), i("bounds"), i("tile_start"), i("tile_list"),
+            o("rgb"), o("alpha"), out ? p(*out, "depth") : p(st, "depth"), o("median_depth"), o("normal"),
+            o("distortion"), p(st, "T_final"), p(st, "totals"), i("last"), i("median_index")};
+}
+
+void check_surfels(const Tensor& means, const Tensor& quats, const Tensor& scales, const Tensor& opac,
+                   const Tensor& base, const Tensor& wv, const Tensor& wp, const Tensor& wa) {
+    TORCH_CHECK(means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble,
+                "splatzoo render: float32 or float64 surfels expected, got ", means.scalar_type());
+    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "splatzoo render: means must be [N,3], got ", means.sizes());
+    TORCH_CHECK(means.size(0) < INT_MAX, "splatzoo render: too many surfels (", means.size(0), ")");
     const int64_t N = means.size(0);
-    TORCH_CHECK(quats.sizes() == at::IntArrayRef({N, 4}) && scales.sizes() == at::IntArrayRef({N, 2}) &&
-                    opac.sizes() == at::IntArrayRef({N}),
-                "splatzoo render: quats [N,4], scales [N,2], opacities [N] expected");
-    for (const Tensor* t : {&quats, &scales, &opac})
-        TORCH_CHECK(t->scalar_type() == means.scalar_type() && t->device().is_cpu(),
-                    "splatzoo render: every surfel tensor must be ", means.scalar_type(), " on the CPU");
+    TORCH_CHECK(wv.dim() == 3 && wv.size(2) == 2, "splatzoo render: wave_vectors must be [N,K,2], got ", wv.sizes());
+    const int64_t K = wv.size(1);
+    auto want = [&](const Tensor& t, std::vector<int64_t> shape, const char* name) {
+        TORCH_CHECK(t.sizes().vec() == shape, "splatzoo render: ", name, " must have shape ", at::IntArrayRef(shape),
+                    ", got ", t.sizes());
+        TORCH_CHECK(t.scalar_type() == means.scalar_type() && t.device() == means.device(), "splatzoo render: ", name,
+                    " must be ", means.scalar_type(), " on ", means.device(), " like the means");
+    };
+    want(quats, {N, 4}, "quats");
+    want(scales, {N, 2}, "scales");
+    want(opac, {N}, "opacities");
+    want(base, {N, 3}, "base_color");
+    want(wv, {N, K, 2}, "wave_vectors");
+    want(wp, {N, K}, "wave_phases");
+    want(wa, {N, K, 3}, "wave_amplitudes");
+}
+
+// render(settings, means, quats, scales, opacities, base_color, wave_vectors, wave_phases, wave_amplitudes,
+//        wave_counts, KR, Kt, eye, width, height, emulated) -> (outputs, state), two dicts of tensors:
+// outputs: rgb [H,W,3], alpha, depth, median_depth [H,W], normal [H,W,3], distortion [H,W] (before the background);
+// state: what render_backward needs (the visible surfels' compacted tensors, the binning, per-pixel totals).
+std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& means, const Tensor& quats,
+                                       const Tensor& scales, const Tensor& opac, const Tensor& base, const Tensor& wv,
+                                       const Tensor& wp, const Tensor& wa, const std::optional<Tensor>& wave_counts,
+                                       const Tensor& KR, const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H,
+                                       bool emulated) {
+    check_surfels(means, quats, scales, opac, base, wv, wp, wa);
+    TORCH_CHECK(W >= 1 && H >= 1 && W <= (1 << 20) && H <= (1 << 20), "splatzoo render: bad image size ", W, "x", H);
+    const Device dev = device_of(means, emulated);
+    const at::OptionalDeviceGuard guard(at::device_of(means));
+    void* stream = stream_for(dev);
+    const int threads = at::get_num_threads();
+    const int64_t N = means.size(0), K = wv.size(1);
     auto f = means.options();
-    Tensor T = at::empty({N, 3, 3}, f), center = at::empty({N, 2}, f), depth = at::empty({N}, f);
-    Tensor normal = at::empty({N, 3}, f), boxes = at::empty({N, 4}, f);
-    Tensor visible = at::empty({N}, f.dtype(at::kBool));
+    auto i32 = f.dtype(at::kInt);
     Tensor m = means.contiguous(), q = quats.contiguous(), sc = scales.contiguous(), op = opac.contiguous();
-    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_project_cpu", [&] {
-        sz::cpu_project<scalar_t>(camera_args<scalar_t>(KR, Kt, eye, W, H), N, m.data_ptr<scalar_t>(),
-                                  q.data_ptr<scalar_t>(), sc.data_ptr<scalar_t>(), op.data_ptr<scalar_t>(),
-                                  T.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-                                  normal.data_ptr<scalar_t>(), boxes.data_ptr<scalar_t>(), visible.data_ptr<bool>(),
-                                  at::get_num_threads());
+
+    // 1. project every surfel: T, centre, depth, normal, exact screen box, visibility
+    Tensor T = at::empty({N, 3, 3}, f), center = at::empty({N, 2}, f), depth = at::empty({N}, f);
+    Tensor normal = at::empty({N, 3}, f), boxes = at::empty({N, 4}, f), visible = at::empty({N}, f.dtype(at::kBool));
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_project", [&] {
+        sz::ProjectArgs<scalar_t> a{st, camera_args<scalar_t>(KR, Kt, eye, W, H), N, m.data_ptr<scalar_t>(),
+                                    q.data_ptr<scalar_t>(), sc.data_ptr<scalar_t>(), op.data_ptr<scalar_t>(),
+                                    T.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+                                    normal.data_ptr<scalar_t>(), boxes.data_ptr<scalar_t>(), visible.data_ptr<bool>()};
+        if (dev == Device::Cpu)
+            sz::cpu_project<scalar_t>(a, threads);
+        else
+            SZ_KERNELS(dev, project<scalar_t>, a, stream);
     });
-    // front to back by centre depth, ties by index: the reference's order
+
+    // 2. the visible ones, front to back by centre depth, ties by index (the reference's order)
     Tensor vis = at::nonzero(visible).squeeze(1);
     Tensor order = vis.index_select(0, std::get<1>(at::sort(depth.index_select(0, vis), true, 0, false)));
-    auto take = [&](const Tensor& t) { return t.index_select(0, order); };
-    std::optional<Tensor> counts;
+    const int64_t M = order.size(0);
+    auto take = [&](const Tensor& t) { return t.index_select(0, order).contiguous(); };
+    TensorMap state = {{"order", order}, {"T", take(T)}, {"centers", take(center)}, {"center_depths", take(depth)},
+                       {"normals", take(normal)}, {"opacities", take(op)}, {"base_color", take(base)},
+                       {"wave_vectors", take(wv)}, {"wave_phases", take(wp)}, {"wave_amplitudes", take(wa)},
+                       {"boxes", take(boxes)}};
     if (wave_counts.has_value() && wave_counts->defined()) {
-        TORCH_CHECK(wave_counts->dim() == 1 && wave_counts->size(0) == N, "splatzoo render: wave_counts must be [N]");
-        counts = take(wave_counts->to(at::kInt));
+        const Tensor& wc = *wave_counts;
+        TORCH_CHECK(wc.dim() == 1 && wc.size(0) == N && !wc.is_floating_point() && wc.device() == means.device(),
+                    "splatzoo render: wave_counts must be an integer tensor [", N, "] on ", means.device(), ", got ",
+                    wc.scalar_type(), " ", wc.sizes(), " on ", wc.device());
+        if (N > 0)  // an out-of-range count would read past the surfel's row
+            TORCH_CHECK(wc.min().item<int64_t>() >= 0 && wc.max().item<int64_t>() <= K,
+                        "splatzoo render: wave_counts must lie in [0, K=", K, "]");
+        state["wave_counts"] = take(wc.to(at::kInt));
     }
-    Inputs in = check_inputs(take(T), take(center), take(depth), take(normal), take(opac), take(base), take(wv),
-                             take(wp), take(wa), take(boxes), W, H, counts);
-    std::vector<Tensor> o = forward_cpu(in);
-    o.insert(o.end(), {in.T, in.center, in.depth, in.normal, in.opac, in.base, in.wv, in.wp, in.wa, in.boxes,
-                       in.wc.defined() ? in.wc : at::empty({0}, f.dtype(at::kInt)), order});
-    return o;
+
+    // 3. pixel geometry, then (tile, surfel) pairs binned tile-major in depth order
+    const int nt = sz::tiles_x(int(W)) * sz::tiles_y(int(H));
+    state["geom"] = at::empty({M, sz::GEOM}, f);
+    state["bounds"] = at::empty({M, 4}, i32);
+    state["tile_start"] = at::empty({nt + 1}, i32);
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_bin", [&] {
+        const auto s = surfel_args<scalar_t>(st, state, W, H);
+        scalar_t* geom = state["geom"].data_ptr<scalar_t>();
+        int* bounds = state["bounds"].data_ptr<int>();
+        int64_t P = 0;
+        if (dev == Device::Cpu) {  // a counting sort that also records each pair's position for the backward
+            state["surfel_off"] = at::empty({M + 1}, f.dtype(at::kLong));
+            P = sz::cpu_prepare<scalar_t>(s, geom, bounds, state["surfel_off"].data_ptr<int64_t>(), threads);
+            TORCH_CHECK(P < INT_MAX, "splatzoo render: ", P, " (tile, surfel) pairs exceed 2^31; render at a lower "
+                        "resolution or with fewer or smaller surfels");
+            state["tile_list"] = at::empty({P}, i32);
+            state["pair_pos"] = at::empty({P}, i32);
+            sz::cpu_bin(int(M), int(W), int(H), bounds, state["surfel_off"].data_ptr<int64_t>(),
+                        state["tile_start"].data_ptr<int>(), state["tile_list"].data_ptr<int>(),
+                        state["pair_pos"].data_ptr<int>());
+        } else {  // one key per pair (tile << 32 | surfel), sorted
+            Tensor count = at::empty({M}, i32);
+            SZ_KERNELS(dev, prepare<scalar_t>, s, geom, bounds, count.data_ptr<int>(), stream);
+            Tensor pair_end = at::cumsum(count, 0, at::kLong);
+            P = M > 0 ? pair_end[M - 1].item<int64_t>() : 0;
+            TORCH_CHECK(P < INT_MAX, "splatzoo render: ", P, " (tile, surfel) pairs exceed 2^31; render at a lower "
+                        "resolution or with fewer or smaller surfels");
+            Tensor keys = at::empty({P}, f.dtype(at::kLong));
+            SZ_KERNELS(dev, emit_pairs, int(M), int(W), bounds, pair_end.data_ptr<int64_t>(), keys.data_ptr<int64_t>(),
+                       stream);
+            keys = std::get<0>(at::sort(keys));
+            state["tile_list"] = at::empty({P}, i32);
+            if (P == 0) state["tile_start"].zero_();
+            SZ_KERNELS(dev, tile_starts, P, nt, keys.data_ptr<int64_t>(), state["tile_list"].data_ptr<int>(),
+                       state["tile_start"].data_ptr<int>(), stream);
+        }
+    });
+
+    // 4. the tile loop
+    TensorMap out = {{"rgb", at::empty({H, W, 3}, f)}, {"alpha", at::empty({H, W}, f)}, {"depth", at::empty({H, W}, f)},
+                     {"median_depth", at::empty({H, W}, f)}, {"normal", at::empty({H, W, 3}, f)},
+                     {"distortion", at::empty({H, W}, f)}};
+    state["T_final"] = at::empty({H, W}, f);
+    state["totals"] = at::empty({H, W, 3}, f);
+    state["last"] = at::empty({H, W}, i32);
+    state["median_index"] = at::empty({H, W}, i32);
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_forward", [&] {
+        const auto s = surfel_args<scalar_t>(st, state, W, H);
+        const auto fr = frame_args<scalar_t>(state, &out);
+        if (dev == Device::Cpu)
+            sz::cpu_forward<scalar_t>(s, fr, threads);
+        else
+            SZ_KERNELS(dev, forward<scalar_t>, s, fr, stream);
+    });
+    state["depth"] = out["depth"];  // the backward divides by the accumulated alpha through it
+    return {out, state};
 }
 
-// render_backward(means, quats, scales, KR, Kt, eye, width, height, saved (render's list from index 0: the N_OUT
-//                 outputs and state, then the 12 compact tensors), grads of the 6 outputs, has_counts)
-// -> [v_means, v_quats, v_scales, v_opacities, v_base, v_wave_vectors, v_wave_phases, v_wave_amplitudes]
-std::vector<Tensor> render_backward(const Tensor& means, const Tensor& quats, const Tensor& scales, const Tensor& KR,
-                                    const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H,
-                                    std::vector<Tensor> saved, std::vector<Tensor> grads, bool has_counts) {
-    check_camera(means, KR, Kt, eye);
-    TORCH_CHECK(int(saved.size()) == N_OUT + 12, "splatzoo render_backward: got ", saved.size(), " saved tensors");
-    std::vector<Tensor> outs(saved.begin(), saved.begin() + N_OUT);
-    const Tensor* c = saved.data() + N_OUT;  // T, center, depth, normal, opac, base, wv, wp, wa, boxes, counts, order
-    const Tensor& order = c[11];
-    std::optional<Tensor> counts;
-    if (has_counts) counts = c[10];
-    std::vector<Tensor> v = backward(c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], W, H, outs, grads,
-                                     counts);
-    const int64_t N = means.size(0);
+// render_backward(settings, means, quats, scales, KR, Kt, eye, width, height, state, cotangents, emulated)
+// -> dict of v_ gradients by surfel field: means, quats, scales, opacities, base_color, wave_vectors, wave_phases,
+//    wave_amplitudes (missing cotangents count as zero; waves beyond a surfel's count get zero).
+TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Tensor& quats, const Tensor& scales,
+                          const Tensor& KR, const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H,
+                          const TensorMap& state, const TensorMap& cotangents, bool emulated) {
+    const Device dev = device_of(means, emulated);
+    const at::OptionalDeviceGuard guard(at::device_of(means));
+    void* stream = stream_for(dev);
+    const int threads = at::get_num_threads();
+    auto f = means.options();
+    const Tensor& order = need(state, "order");
+    const int64_t N = means.size(0), M = order.size(0), K = need(state, "wave_vectors").size(1);
+    TensorMap v_out;  // cotangents of the six outputs, contiguous, zeros where not given
+    for (const char* name : OUTPUTS) {
+        std::vector<int64_t> shape = {H, W};
+        if (name == std::string("rgb") || name == std::string("normal")) shape.push_back(3);
+        auto it = cotangents.find(name);
+        v_out[name] = it != cotangents.end() && it->second.defined()
+                          ? it->second.to(means.device(), means.scalar_type()).contiguous()
+                          : at::zeros(shape, f);
+        TORCH_CHECK(v_out[name].sizes().vec() == shape, "splatzoo render_backward: cotangent of ", name,
+                    " must have shape ", at::IntArrayRef(shape), ", got ", v_out[name].sizes());
+    }
+    TensorMap v_c = {{"T", at::empty({M, 3, 3}, f)}, {"centers", at::empty({M, 2}, f)},
+                     {"center_depths", at::empty({M}, f)}, {"normals", at::empty({M, 3}, f)},
+                     {"opacities", at::empty({M}, f)}, {"base_color", at::empty({M, 3}, f)},
+                     {"wave_vectors", at::empty({M, K, 2}, f)}, {"wave_phases", at::empty({M, K}, f)},
+                     {"wave_amplitudes", at::empty({M, K, 3}, f)}};
+    const int GW = sz::grad_width(int(K));
+    if (M > 0) {
+        AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_backward", [&] {
+            using S = scalar_t;
+            const auto s = surfel_args<S>(st, state, W, H);
+            const auto fr = frame_args<S>(state, nullptr);
+            const sz::GradArgs<S> g{v_out["rgb"].data_ptr<S>(), v_out["alpha"].data_ptr<S>(),
+                                    v_out["depth"].data_ptr<S>(), v_out["median_depth"].data_ptr<S>(),
+                                    v_out["normal"].data_ptr<S>(), v_out["distortion"].data_ptr<S>(),
+                                    v_c["T"].data_ptr<S>(), v_c["centers"].data_ptr<S>(),
+                                    v_c["center_depths"].data_ptr<S>(), v_c["normals"].data_ptr<S>(),
+                                    v_c["opacities"].data_ptr<S>(), v_c["base_color"].data_ptr<S>(),
+                                    v_c["wave_vectors"].data_ptr<S>(), v_c["wave_phases"].data_ptr<S>(),
+                                    v_c["wave_amplitudes"].data_ptr<S>()};
+            if (dev == Device::Cpu) {
+                Tensor partials = at::empty({need(state, "tile_list").size(0), GW}, f);
+                sz::cpu_backward<S>(s, fr, g, need(state, "surfel_off").data_ptr<int64_t>(),
+                                    need(state, "pair_pos").data_ptr<int>(), partials.data_ptr<S>(), threads);
+            } else {
+                Tensor rows = at::zeros({M, GW}, f);
+                SZ_KERNELS(dev, backward<S>, s, fr, g, rows.data_ptr<S>(), stream);
+            }
+        });
+    } else {
+        for (auto& kv : v_c) kv.second.zero_();
+    }
+    // back to all N surfels, then through the projection
     auto scatter = [&](const Tensor& t) {
         std::vector<int64_t> shape = t.sizes().vec();
         shape[0] = N;
         return at::zeros(shape, t.options()).index_copy_(0, order, t);
     };
-    Tensor v_T = scatter(v[0]), v_center = scatter(v[1]), v_depth = scatter(v[2]), v_normal = scatter(v[3]);
-    Tensor v_means = at::empty({N, 3}, means.options()), v_quats = at::empty({N, 4}, means.options());
-    Tensor v_scales = at::empty({N, 2}, means.options());
+    Tensor v_T = scatter(v_c["T"]), v_center = scatter(v_c["centers"]), v_depth = scatter(v_c["center_depths"]);
+    Tensor v_normal = scatter(v_c["normals"]);
+    Tensor v_means = at::empty({N, 3}, f), v_quats = at::empty({N, 4}, f), v_scales = at::empty({N, 2}, f);
     Tensor m = means.contiguous(), q = quats.contiguous(), sc = scales.contiguous();
-    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_project_backward_cpu", [&] {
-        sz::cpu_project_backward<scalar_t>(
-            camera_args<scalar_t>(KR, Kt, eye, W, H), N, m.data_ptr<scalar_t>(), q.data_ptr<scalar_t>(),
-            sc.data_ptr<scalar_t>(), v_T.data_ptr<scalar_t>(), v_center.data_ptr<scalar_t>(),
-            v_depth.data_ptr<scalar_t>(), v_normal.data_ptr<scalar_t>(), v_means.data_ptr<scalar_t>(),
-            v_quats.data_ptr<scalar_t>(), v_scales.data_ptr<scalar_t>(), at::get_num_threads());
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_project_backward", [&] {
+        using S = scalar_t;
+        sz::ProjectGradArgs<S> a{st, camera_args<S>(KR, Kt, eye, W, H), N, m.data_ptr<S>(), q.data_ptr<S>(),
+                                 sc.data_ptr<S>(), v_T.data_ptr<S>(), v_center.data_ptr<S>(), v_depth.data_ptr<S>(),
+                                 v_normal.data_ptr<S>(), v_means.data_ptr<S>(), v_quats.data_ptr<S>(),
+                                 v_scales.data_ptr<S>()};
+        if (dev == Device::Cpu)
+            sz::cpu_project_backward<S>(a, threads);
+        else
+            SZ_KERNELS(dev, project_backward<S>, a, stream);
     });
-    return {v_means, v_quats, v_scales, scatter(v[4]), scatter(v[5]), scatter(v[6]), scatter(v[7]), scatter(v[8])};
+    return {{"means", v_means}, {"quats", v_quats}, {"scales", v_scales}, {"opacities", scatter(v_c["opacities"])},
+            {"base_color", scatter(v_c["base_color"])}, {"wave_vectors", scatter(v_c["wave_vectors"])},
+            {"wave_phases", scatter(v_c["wave_phases"])}, {"wave_amplitudes", scatter(v_c["wave_amplitudes"])}};
 }
 
 }  // namespace
@@ -344,30 +322,29 @@ std::vector<Tensor> render_backward(const Tensor& means, const Tensor& quats, co
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "splatzoo native tile rasterizer (surfels with per-surfel wave colour)";
     namespace py = pybind11;
-    m.def("forward", &forward, "Rasterize depth-sorted visible surfels; returns outputs and saved state", py::arg("T"),
-          py::arg("center_px"), py::arg("depth"), py::arg("normal"), py::arg("opacities"), py::arg("base_color"),
-          py::arg("wave_vectors"), py::arg("wave_phases"), py::arg("wave_amplitudes"), py::arg("boxes"),
-          py::arg("width"), py::arg("height"), py::arg("wave_counts") = py::none());
-    m.def("backward", &backward, "Gradients of the per-surfel inputs", py::arg("T"), py::arg("center_px"),
-          py::arg("depth"), py::arg("normal"), py::arg("opacities"), py::arg("base_color"), py::arg("wave_vectors"),
-          py::arg("wave_phases"), py::arg("wave_amplitudes"), py::arg("boxes"), py::arg("width"), py::arg("height"),
-          py::arg("outs"), py::arg("grads"), py::arg("wave_counts") = py::none());
-    m.def("render", &render, "Project, cull, sort and rasterize surfels on the CPU in one call", py::arg("means"),
-          py::arg("quats"), py::arg("scales"), py::arg("opacities"), py::arg("base_color"), py::arg("wave_vectors"),
-          py::arg("wave_phases"), py::arg("wave_amplitudes"), py::arg("KR"), py::arg("Kt"), py::arg("eye"),
-          py::arg("width"), py::arg("height"), py::arg("wave_counts") = py::none());
-    m.def("render_backward", &render_backward, "Gradients of render's surfel inputs", py::arg("means"),
-          py::arg("quats"), py::arg("scales"), py::arg("KR"), py::arg("Kt"), py::arg("eye"), py::arg("width"),
-          py::arg("height"), py::arg("saved"), py::arg("grads"), py::arg("has_counts"));
+    // module_local: the CPU and the CUDA builds may be loaded in one process, each with its own Settings type
+    py::class_<sz::Settings>(m, "Settings", py::module_local(), "The rasterizer's numeric settings (from RasterSettings)")
+        .def(py::init<>())
+        .def_readwrite("near", &sz::Settings::near)
+        .def_readwrite("far", &sz::Settings::far)
+        .def_readwrite("alpha_max", &sz::Settings::alpha_max)
+        .def_readwrite("alpha_min", &sz::Settings::alpha_min)
+        .def_readwrite("t_min", &sz::Settings::t_min)
+        .def_readwrite("filter_inv_sq", &sz::Settings::filter_inv_sq)
+        .def_readwrite("parallel_eps", &sz::Settings::parallel_eps);
+    // the fields above, so the Python side can check it sets every one
+    m.attr("SETTINGS_FIELDS") = py::make_tuple("near", "far", "alpha_max", "alpha_min", "t_min", "filter_inv_sq",
+                                               "parallel_eps");
+    m.def("render", &render, "Project, cull, sort, bin and rasterize surfels; returns (outputs, state)",
+          py::arg("settings"), py::arg("means"), py::arg("quats"), py::arg("scales"), py::arg("opacities"),
+          py::arg("base_color"), py::arg("wave_vectors"), py::arg("wave_phases"), py::arg("wave_amplitudes"),
+          py::arg("wave_counts"), py::arg("KR"), py::arg("Kt"), py::arg("eye"), py::arg("width"), py::arg("height"),
+          py::arg("emulated") = false);
+    m.def("render_backward", &render_backward, "Gradients of render's surfel inputs (dict by field name)",
+          py::arg("settings"), py::arg("means"), py::arg("quats"), py::arg("scales"), py::arg("KR"), py::arg("Kt"),
+          py::arg("eye"), py::arg("width"), py::arg("height"), py::arg("state"), py::arg("cotangents"),
+          py::arg("emulated") = false);
     m.attr("GEOM") = sz::GEOM;
-    m.attr("N_OUTPUTS") = int(N_OUT);
-    m.attr("NEAR") = sz::NEAR;
-    m.attr("FAR") = sz::FAR;
-    m.attr("ALPHA_MAX") = sz::ALPHA_MAX;
-    m.attr("ALPHA_MIN") = sz::ALPHA_MIN;
-    m.attr("T_MIN") = sz::T_MIN;
-    m.attr("FILTER_INV_SQ") = sz::FILTER_INV_SQ;
-    m.attr("PARALLEL_EPS") = sz::PARALLEL_EPS;
     m.attr("TILE") = sz::TILE;
 #ifdef SPLATZOO_WITH_CUDA
     m.attr("WITH_CUDA") = true;

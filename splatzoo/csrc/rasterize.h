@@ -1,9 +1,13 @@
-// Raw-pointer interface between the torch bindings (ext.cpp) and the tile loops (rasterize_cpu.cpp,
-// rasterize_cuda.cu), and the small pieces both loops share. Kept free of torch headers so the tile loops compile
-// fast and nvcc needs no torch.
+// Raw-pointer interface between the torch bindings (ext.cpp) and the tile rasterizers: the C++ loops
+// (rasterize_cpu.cpp) and the CUDA kernels (rasterize_cuda.cu, compiled by nvcc into namespace sz::gpu and, for the
+// host emulation that runs them without a GPU, into sz::emu). Free of torch headers so the loops compile fast and
+// nvcc needs no torch.
 //
-// Surfels arrive compacted to the visible ones and sorted front to back by centre depth (stable), so a tile's
-// list in increasing surfel index is its depth order. Shapes: M surfels, K waves, image H x W.
+// One pipeline on every device: project every surfel (project_surfel), compact the visible ones and sort them
+// front to back by centre depth (in ext.cpp), prepare their pixel geometry and count their tiles, bin (tile, surfel)
+// pairs tile-major in depth order, run the tile loop; the backward runs the tile loop back to front, sums each
+// surfel's slot row and maps it to input gradients (finalize_grads), then back through the projection.
+// Shapes: N surfels in, M visible, K waves, image H x W, P (tile, surfel) pairs.
 #pragma once
 
 #include <cstdint>
@@ -12,8 +16,33 @@
 
 namespace sz {
 
+// Per-surfel projection for one camera: inputs [N,...], outputs [N,...] (see project_surfel).
+template <class S>
+struct ProjectArgs {
+    Settings st;
+    CameraArgs<S> cam;
+    int64_t N;
+    const S *means, *quats, *scales, *opac;
+    S *T, *center, *depth, *normal, *boxes;
+    bool* visible;
+};
+
+// Its backward: cotangents of T, centre, depth, normal -> v_means, v_quats, v_scales.
+template <class S>
+struct ProjectGradArgs {
+    Settings st;
+    CameraArgs<S> cam;
+    int64_t N;
+    const S *means, *quats, *scales;
+    const S *v_T, *v_center, *v_depth, *v_normal;
+    S *v_means, *v_quats, *v_scales;
+};
+
+// The visible surfels, compacted and sorted front to back (stable), so a tile's list in increasing surfel index is
+// its depth order.
 template <class S>
 struct SurfelArgs {
+    Settings st;
     int M, K, W, H;
     const S* T;       // [M,3,3] rows m1, m2, m3
     const S* center;  // [M,2] projected centre (pixels)
@@ -24,7 +53,7 @@ struct SurfelArgs {
     const S* wv;      // [M,K,2]
     const S* wp;      // [M,K]
     const S* wa;      // [M,K,3]
-    const S* boxes;   // [M,4] exact screen box (xmin, ymin, xmax, ymax), common.screen_boxes
+    const S* boxes;   // [M,4] exact screen box (xmin, ymin, xmax, ymax)
     // [M] waves in use per surfel (its first wcount[i] of K), or nullptr for all K. The tile loops run the wave
     // loops to k < wcount[i], so removed waves cost nothing; the row stride stays K.
     const int* wcount;
@@ -32,31 +61,31 @@ struct SurfelArgs {
 
 template <class S>
 struct FrameArgs {
-    S* geom;                // [M,GEOM] per-surfel geometry (prepare)
+    S* geom;                // [M,GEOM] per-surfel pixel geometry (prepare_geom)
     int* bounds;            // [M,4] pixel range x0, x1, y0, y1 (inclusive)
     const int* tile_start;  // [tiles+1] tile t's surfels are tile_list[tile_start[t] .. tile_start[t+1])
     const int* tile_list;   // [P] surfel index per (tile, surfel) pair, tile-major, depth order within a tile
     // outputs [H,W(,3)]
     S *rgb, *alpha, *depth, *median, *normal, *dist;
     // saved for the backward [H,W(,3)]
-    S* Tfinal;
-    S* tot;    // [H,W,3] sum w, sum w m, sum w m^2
-    int* last;  // 1 + tile-list position (relative to the tile start) of the last blended contribution
-    int* med;   // relative tile-list position of the median contribution, -1 if none
+    S* T_final;
+    S* totals;          // [H,W,3] sum w, sum w m, sum w m^2
+    int* last;          // 1 + tile-list position (relative to the tile start) of the last blended contribution
+    int* median_index;  // relative tile-list position of the median contribution, -1 if none
 };
 
 template <class S>
 struct GradArgs {
-    // cotangents of the outputs [H,W(,3)] (contiguous, zeros where the output was unused)
-    const S *g_rgb, *g_alpha, *g_depth, *g_median, *g_normal, *g_dist;
-    // gradients of the inputs, same shapes as SurfelArgs
-    S *v_T, *v_center, *v_depth, *v_normal, *v_opac, *v_base, *v_wv, *v_wp, *v_wa;
+    // cotangents of the outputs [H,W(,3)] (contiguous, zeros where an output was unused)
+    const S *v_rgb, *v_alpha, *v_depth, *v_median, *v_normal, *v_dist;
+    // gradients of the per-surfel inputs, same shapes as in SurfelArgs
+    S *v_T, *v_center, *v_depth_c, *v_normal_c, *v_opac, *v_base, *v_wv, *v_wp, *v_wa;
 };
 
-inline int tiles_x(int W) { return (W + 15) / 16; }
-inline int tiles_y(int H) { return (H + 15) / 16; }
+inline int tiles_x(int W) { return (W + TILE - 1) / TILE; }
+inline int tiles_y(int H) { return (H + TILE - 1) / TILE; }
 
-// ---- shared by the CPU and CUDA tile loops ----
+// ---- shared by the CPU loops and the CUDA kernels ----
 // One surfel's colour inputs (its rows of the SurfelArgs arrays) and how many of its K waves it uses.
 template <class S>
 struct SurfelColour {
@@ -81,24 +110,33 @@ SZ_HD void store_pixel(const FrameArgs<S>& f, int64_t o, const PixelFwd<S>& q) {
     f.depth[o] = acc > S(0) ? q.D / acc : S(0);
     f.median[o] = q.med >= 0 ? q.median : S(0);
     f.dist[o] = q.dist;
-    f.Tfinal[o] = q.T;
-    f.tot[3 * o] = q.A;
-    f.tot[3 * o + 1] = q.M1;
-    f.tot[3 * o + 2] = q.M2;
+    f.T_final[o] = q.T;
+    f.totals[3 * o] = q.A;
+    f.totals[3 * o + 1] = q.M1;
+    f.totals[3 * o + 2] = q.M2;
     f.last[o] = q.last;
-    f.med[o] = q.med;
+    f.median_index[o] = q.med;
+}
+
+// A pixel's backward state from the forward's saved state and the output cotangents, at pixel index o.
+template <class S>
+SZ_HD void load_pixel_bwd(PixelBwd<S>& p, const FrameArgs<S>& f, const GradArgs<S>& g, int64_t o) {
+    pixel_bwd_init(p, f.T_final[o], f.totals + 3 * o, f.last[o], f.median_index[o], f.depth[o], g.v_rgb + 3 * o,
+                   g.v_alpha[o], g.v_depth[o], g.v_median[o], g.v_normal + 3 * o, g.v_dist[o]);
+}
+
+// A surfel's summed slot row -> its input gradients (row R: float or double).
+template <class S, class R>
+SZ_HD void finalize_surfel(const SurfelArgs<S>& s, const GradArgs<S>& g, int64_t i, const R* row) {
+    const int K = s.K;
+    finalize_grads(s.T + 9 * i, s.center + 2 * i, row, K, g.v_T + 9 * i, g.v_center + 2 * i, g.v_depth_c + i,
+                   g.v_normal_c + 3 * i, g.v_opac + i, g.v_base + 3 * i, g.v_wv + 2 * K * i, g.v_wp + K * i,
+                   g.v_wa + 3 * K * i);
 }
 
 // ---- CPU (OpenMP) ----
-// The camera-dependent set-up of N surfels (project_surfel): T [N,3,3], centre [N,2], depth [N], normal [N,3],
-// boxes [N,4], visible [N]; and its backward (project_backward) to means [N,3], quats [N,4], scales [N,2].
-template <class S>
-void cpu_project(const CameraArgs<S>& cam, int64_t N, const S* means, const S* quats, const S* scales, const S* opac,
-                 S* T, S* center, S* depth, S* normal, S* boxes, bool* visible, int threads);
-template <class S>
-void cpu_project_backward(const CameraArgs<S>& cam, int64_t N, const S* means, const S* quats, const S* scales,
-                          const S* v_T, const S* v_center, const S* v_depth, const S* v_normal, S* v_means,
-                          S* v_quats, S* v_scales, int threads);
+template <class S> void cpu_project(const ProjectArgs<S>& a, int threads);
+template <class S> void cpu_project_backward(const ProjectGradArgs<S>& a, int threads);
 // Fills geom and bounds; returns the number of (tile, surfel) pairs and writes surfel_off [M+1] (CSR of pairs by
 // surfel, surfel-major order).
 template <class S> int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfel_off, int threads);
@@ -107,16 +145,32 @@ template <class S> int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bou
 void cpu_bin(int M, int W, int H, const int* bounds, const int64_t* surfel_off, int* tile_start, int* tile_list,
              int* pair_pos);
 template <class S> void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads);
-// partials: scratch [P, grad_width(K)] of the scalar type.
+// partials: scratch [P, grad_width(K)]; rows are summed per surfel in a fixed order (deterministic).
 template <class S>
 void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, const int64_t* surfel_off,
                   const int* pair_pos, S* partials, int threads);
 
-// ---- CUDA ---- (stream is a cudaStream_t)
-template <class S> void cuda_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int* tile_count, void* stream);
-template <class S> void cuda_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, void* stream);
-// gbuf: zeroed scratch [M, grad_width(K)] accumulated with atomics, then finalised into GradArgs.
-template <class S>
-void cuda_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, S* gbuf, void* stream);
+// ---- CUDA kernels (stream: a cudaStream_t; nullptr under the host emulation) ----
+// The same entry points, compiled by nvcc (sz::gpu) and for the host emulation (sz::emu).
+#define SZ_GPU_ENTRY_POINTS                                                                                        \
+    template <class S> void project(const ProjectArgs<S>& a, void* stream);                                        \
+    template <class S> void project_backward(const ProjectGradArgs<S>& a, void* stream);                           \
+    /* geom, bounds and each surfel's tile count [M] */                                                            \
+    template <class S> void prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int* tile_count, void* stream);  \
+    /* one key (tile << 32 | surfel) per pair, surfel-major; pair_end [M] = inclusive cumulative tile counts */      \
+    void emit_pairs(int M, int W, const int* bounds, const int64_t* pair_end, int64_t* keys, void* stream);        \
+    /* tile_start [tiles+1] from the sorted keys [P] */                                                            \
+    void tile_starts(int64_t P, int tiles, const int64_t* keys, int* tile_list, int* tile_start, void* stream);    \
+    template <class S> void forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, void* stream);                  \
+    /* rows: zeroed scratch [M, grad_width(K)], summed into per warp (one atomic per slot per warp) */             \
+    template <class S>                                                                                             \
+    void backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, S* rows, void* stream);
+
+namespace gpu {
+SZ_GPU_ENTRY_POINTS
+}
+namespace emu {
+SZ_GPU_ENTRY_POINTS
+}
 
 }  // namespace sz

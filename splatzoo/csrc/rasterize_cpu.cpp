@@ -31,9 +31,10 @@ struct TileScratch {
 
 // Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z per pixel.
 template <class S>
-__attribute__((noinline)) void eval_rows(const Geom<S>& g, const S* xs, S y0, int r0, int r1, S* alpha, S* us, S* vs,
-                                         S* zs) {
-    const Geom<S> gl = g;  // a local copy lets the compiler keep every field in a register
+__attribute__((noinline)) void eval_rows(const Settings& settings, const Geom<S>& g, const S* xs, S y0, int r0, int r1,
+                                         S* alpha, S* us, S* vs, S* zs) {
+    const Geom<S> gl = g;  // local copies let the compiler keep every field in a register
+    const Settings st = settings;
     for (int r = r0; r <= r1; ++r) {
         const S y = y0 + S(r);
         S* al = alpha + r * TILE;
@@ -43,7 +44,7 @@ __attribute__((noinline)) void eval_rows(const Geom<S>& g, const S* xs, S y0, in
 #pragma omp simd
         for (int c = 0; c < TILE; ++c) {
             PairEval<S> e;
-            eval_pair(gl, xs[c], y, e);
+            eval_pair(st, gl, xs[c], y, e);
             al[c] = e.alpha;
             ur[c] = e.u;
             vr[c] = e.v;
@@ -93,13 +94,7 @@ int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfe
         box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     }
     surfel_off[0] = 0;
-    for (int i = 0; i < M; ++i) {
-        const int* b = bounds + 4 * i;
-        int64_t n = 0;
-        if (b[0] <= b[1] && b[2] <= b[3])
-            n = int64_t(b[1] / TILE - b[0] / TILE + 1) * int64_t(b[3] / TILE - b[2] / TILE + 1);
-        surfel_off[i + 1] = surfel_off[i] + n;
-    }
+    for (int i = 0; i < M; ++i) surfel_off[i + 1] = surfel_off[i] + tile_range(bounds + 4 * i).count();
     return surfel_off[M];
 }
 
@@ -108,21 +103,19 @@ void cpu_bin(int M, int W, int H, const int* bounds, const int64_t* surfel_off, 
     const int ntx = tiles_x(W), nt = ntx * tiles_y(H);
     std::vector<int> count(nt + 1, 0);
     for (int i = 0; i < M; ++i) {
-        const int* b = bounds + 4 * i;
-        if (b[0] > b[1] || b[2] > b[3]) continue;
-        for (int ty = b[2] / TILE; ty <= b[3] / TILE; ++ty)
-            for (int tx = b[0] / TILE; tx <= b[1] / TILE; ++tx) ++count[ty * ntx + tx];
+        const TileRange r = tile_range(bounds + 4 * i);
+        for (int ty = r.y0; ty <= r.y1; ++ty)
+            for (int tx = r.x0; tx <= r.x1; ++tx) ++count[ty * ntx + tx];
     }
     tile_start[0] = 0;
     for (int t = 0; t < nt; ++t) tile_start[t + 1] = tile_start[t] + count[t];
     std::vector<int> cursor(tile_start, tile_start + nt);
     // surfels in increasing index = front to back, so every tile list comes out in depth order
     for (int i = 0; i < M; ++i) {
-        const int* b = bounds + 4 * i;
-        if (b[0] > b[1] || b[2] > b[3]) continue;
+        const TileRange r = tile_range(bounds + 4 * i);
         int64_t k = surfel_off[i];
-        for (int ty = b[2] / TILE; ty <= b[3] / TILE; ++ty)
-            for (int tx = b[0] / TILE; tx <= b[1] / TILE; ++tx) {
+        for (int ty = r.y0; ty <= r.y1; ++ty)
+            for (int tx = r.x0; tx <= r.x1; ++tx) {
                 int pos = cursor[ty * ntx + tx]++;
                 tile_list[pos] = i;
                 pair_pos[k++] = pos;
@@ -155,7 +148,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                 const int i = f.tile_list[pos];
                 int c0, c1, r0, r1;
                 if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
-                eval_rows(geom[i], sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
+                eval_rows(s.st, geom[i], sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
                 const SurfelColour<S> sf = surfel_colour(s, i);
                 const int rel = pos - start;
                 for (int r = r0; r <= r1; ++r)
@@ -165,7 +158,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                         if (a == S(0) || px[p].done) continue;
                         S col[3], pre[3];
                         wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre);
-                        blend_forward(px[p], a, sc.z[p], col, sf.normal, rel);
+                        blend_forward(s.st, px[p], a, sc.z[p], col, sf.normal, rel);
                         active -= px[p].done;
                     }
             }
@@ -199,9 +192,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                     px[p].last = 0;
                     continue;
                 }
-                const int64_t o = int64_t(tr.y0 + r) * W + tr.x0 + c;
-                pixel_bwd_init(px[p], f.Tfinal[o], f.tot + 3 * o, f.last[o], f.med[o], f.depth[o], g.g_rgb + 3 * o,
-                               g.g_alpha[o], g.g_depth[o], g.g_median[o], g.g_normal + 3 * o, g.g_dist[o]);
+                load_pixel_bwd(px[p], f, g, int64_t(tr.y0 + r) * W + tr.x0 + c);
                 maxlast = std::max(maxlast, px[p].last);
             }
             // pairs behind every pixel's last contribution get no gradient
@@ -217,7 +208,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                     continue;
                 }
                 const Geom<S>& gm = geom[i];
-                eval_rows(gm, sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
+                eval_rows(s.st, gm, sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
                 const SurfelColour<S> sf = surfel_colour(s, i);
                 const int rel = pos - start;
                 auto pixels = [&](RowAcc<S>& acc) {
@@ -227,13 +218,13 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                             const S a = sc.alpha[p];
                             if (a == S(0) || rel >= px[p].last) continue;
                             PairEval<S> e;
-                            eval_pair(gm, sc.xs[c], y0 + S(r), e);
+                            eval_pair(s.st, gm, sc.xs[c], y0 + S(r), e);
                             // the decision and the values blended come from eval_rows, exactly as in the forward
                             e.alpha = a;
                             e.u = sc.u[p];
                             e.v = sc.v[p];
                             e.z = sc.z[p];
-                            blend_backward(px[p], gm, e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+                            blend_backward(s.st, px[p], gm, e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
                         }
                 };
                 if (GW <= LOCAL_GW) {  // accumulate on the stack: the compiler knows it aliases nothing
@@ -257,30 +248,25 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                 const S* row = partials + int64_t(pair_pos[k]) * GW;
                 for (int j = 0; j < GW; ++j) sum[j] += double(row[j]);
             }
-            finalize_grads(s.T + 9 * i, s.center + 2 * i, sum.data(), K, g.v_T + 9 * i, g.v_center + 2 * i,
-                           g.v_depth + i, g.v_normal + 3 * i, g.v_opac + i, g.v_base + 3 * i,
-                           g.v_wv + 2 * K * int64_t(i), g.v_wp + K * int64_t(i), g.v_wa + 3 * K * int64_t(i));
+            finalize_surfel(s, g, i, sum.data());
         }
     }
 }
 
 template <class S>
-void cpu_project(const CameraArgs<S>& cam, int64_t N, const S* means, const S* quats, const S* scales, const S* opac,
-                 S* T, S* center, S* depth, S* normal, S* boxes, bool* visible, int threads) {
-#pragma omp parallel for schedule(static) num_threads(threads) if (N > 4096)
-    for (int64_t i = 0; i < N; ++i)
-        visible[i] = project_surfel(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, opac[i], T + 9 * i,
-                                    center + 2 * i, depth + i, normal + 3 * i, boxes + 4 * i);
+void cpu_project(const ProjectArgs<S>& a, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads) if (a.N > 4096)
+    for (int64_t i = 0; i < a.N; ++i)
+        a.visible[i] = project_surfel(a.st, a.cam, a.means + 3 * i, a.quats + 4 * i, a.scales + 2 * i, a.opac[i],
+                                      a.T + 9 * i, a.center + 2 * i, a.depth + i, a.normal + 3 * i, a.boxes + 4 * i);
 }
 
 template <class S>
-void cpu_project_backward(const CameraArgs<S>& cam, int64_t N, const S* means, const S* quats, const S* scales,
-                          const S* v_T, const S* v_center, const S* v_depth, const S* v_normal, S* v_means,
-                          S* v_quats, S* v_scales, int threads) {
-#pragma omp parallel for schedule(static) num_threads(threads) if (N > 4096)
-    for (int64_t i = 0; i < N; ++i)
-        project_backward(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, v_T + 9 * i, v_center + 2 * i, v_depth[i],
-                         v_normal + 3 * i, v_means + 3 * i, v_quats + 4 * i, v_scales + 2 * i);
+void cpu_project_backward(const ProjectGradArgs<S>& a, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads) if (a.N > 4096)
+    for (int64_t i = 0; i < a.N; ++i)
+        project_backward(a.cam, a.means + 3 * i, a.quats + 4 * i, a.scales + 2 * i, a.v_T + 9 * i, a.v_center + 2 * i,
+                         a.v_depth[i], a.v_normal + 3 * i, a.v_means + 3 * i, a.v_quats + 4 * i, a.v_scales + 2 * i);
 }
 
 #define SZ_INSTANTIATE(S)                                                                                           \
@@ -288,10 +274,8 @@ void cpu_project_backward(const CameraArgs<S>& cam, int64_t N, const S* means, c
     template void cpu_forward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, int);                                  \
     template void cpu_backward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, const GradArgs<S>&, const int64_t*,   \
                                   const int*, S*, int);                                                            \
-    template void cpu_project<S>(const CameraArgs<S>&, int64_t, const S*, const S*, const S*, const S*, S*, S*, S*,   \
-                                 S*, S*, bool*, int);                                                               \
-    template void cpu_project_backward<S>(const CameraArgs<S>&, int64_t, const S*, const S*, const S*, const S*,     \
-                                          const S*, const S*, const S*, S*, S*, S*, int);
+    template void cpu_project<S>(const ProjectArgs<S>&, int);                                                       \
+    template void cpu_project_backward<S>(const ProjectGradArgs<S>&, int);
 SZ_INSTANTIATE(float)
 SZ_INSTANTIATE(double)
 

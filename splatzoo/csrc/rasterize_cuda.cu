@@ -1,9 +1,18 @@
-// CUDA tile loop: one 16x16 thread block per tile, one thread per pixel, surfels staged through shared memory in
-// batches of 256. The per-pair maths is the same surfel_math.h the CPU loop uses. Per-surfel gradients are summed
-// with atomics into a [M, grad_width(K)] buffer, then mapped to input gradients by finalize_kernel.
+// CUDA kernels of the tile rasterizer: per-surfel projection and its backward, pixel geometry and tile counts, pair
+// emission and tile ranges for the binning, and the tile loops (one 16x16 block per tile, one thread per pixel,
+// surfels staged through shared memory in batches of 256). The per-pair maths is surfel_math.h, as on the CPU.
 //
-// Binning (sorting (tile, surfel) pairs) happens in ext.cpp with ATen ops, so this file needs no torch headers.
+// The same source also compiles for the host against cuda_emulation.h (rasterize_cuda_emulated.cpp defines
+// SZ_CUDA_EMULATION): blocks run one after another, their threads as fibers that meet at barriers and warp
+// collectives. That build is the test-only "cuda-emulated" backend, which runs these kernels on machines without a GPU.
+#ifdef SZ_CUDA_EMULATION
+#include "cuda_emulation.h"
+#define SZ_GPU_NAMESPACE emu
+#else
 #include <cuda_runtime.h>
+#define SZ_GPU_NAMESPACE gpu
+#define SZ_LAUNCH(kernel, grid, block, stream) kernel<<<(grid), (block), 0, (stream)>>>
+#endif
 
 #include <stdexcept>
 #include <string>
@@ -12,32 +21,74 @@
 #include "surfel_math.h"
 
 namespace sz {
+namespace SZ_GPU_NAMESPACE {
 namespace {
 
-constexpr int BLOCK = TILE_PIXELS;
+constexpr int BLOCK = TILE_PIXELS;  // one thread per pixel of a tile
+constexpr int PER_SURFEL = 256;     // threads per block of the per-surfel kernels
+constexpr unsigned FULL_WARP = 0xffffffffu;
 
 void check(cudaError_t err, const char* what) {
     if (err != cudaSuccess)
         throw std::runtime_error(std::string("splatzoo cuda rasterizer: ") + what + ": " + cudaGetErrorString(err));
 }
 
-template <class S>
-struct AtomicAcc {
-    S* g;
-    __device__ void operator()(int i, S v) { atomicAdd(g + i, v); }
-};
+int blocks_for(int64_t n) { return int((n + PER_SURFEL - 1) / PER_SURFEL); }
+
+// ---- per surfel ------------------------------------------------------------------------------------------------
 
 template <class S>
-__global__ void prepare_kernel(SurfelArgs<S> s, S* geom, int* bounds, int* count) {
+__global__ void project_kernel(ProjectArgs<S> a) {
+    const int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
+    if (i >= a.N) return;
+    a.visible[i] = project_surfel(a.st, a.cam, a.means + 3 * i, a.quats + 4 * i, a.scales + 2 * i, a.opac[i],
+                                  a.T + 9 * i, a.center + 2 * i, a.depth + i, a.normal + 3 * i, a.boxes + 4 * i);
+}
+
+template <class S>
+__global__ void project_backward_kernel(ProjectGradArgs<S> a) {
+    const int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
+    if (i >= a.N) return;
+    project_backward(a.cam, a.means + 3 * i, a.quats + 4 * i, a.scales + 2 * i, a.v_T + 9 * i, a.v_center + 2 * i,
+                     a.v_depth[i], a.v_normal + 3 * i, a.v_means + 3 * i, a.v_quats + 4 * i, a.v_scales + 2 * i);
+}
+
+template <class S>
+__global__ void prepare_kernel(SurfelArgs<S> s, S* geom, int* bounds, int* tile_count) {
     const int i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= s.M) return;
     prepare_geom(s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i], *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
-    int* b = bounds + 4 * i;
-    box_pixels(s.boxes + 4 * i, s.W, s.H, b);
-    count[i] = (b[0] <= b[1] && b[2] <= b[3]) ? (b[1] / TILE - b[0] / TILE + 1) * (b[3] / TILE - b[2] / TILE + 1) : 0;
+    box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
+    tile_count[i] = int(tile_range(bounds + 4 * i).count());
 }
 
-// Shared-memory batch of surfels: geometry, pixel bounds and index.
+// Surfel i writes its pairs at [pair_end[i-1], pair_end[i]): key = tile << 32 | i. Sorting the keys orders the pairs
+// by tile and, within a tile, by surfel index, which is depth order.
+__global__ void emit_pairs_kernel(int M, int W, const int* bounds, const int64_t* pair_end, int64_t* keys) {
+    const int i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= M) return;
+    const TileRange r = tile_range(bounds + 4 * i);
+    const int ntx = (W + TILE - 1) / TILE;
+    int64_t k = i > 0 ? pair_end[i - 1] : 0;
+    for (int ty = r.y0; ty <= r.y1; ++ty)
+        for (int tx = r.x0; tx <= r.x1; ++tx) keys[k++] = (int64_t(ty * ntx + tx) << 32) | int64_t(i);
+}
+
+// tile_list from the sorted keys, and tile_start: where each tile's run of keys begins (empty tiles included).
+__global__ void tile_starts_kernel(int64_t P, int tiles, const int64_t* keys, int* tile_list, int* tile_start) {
+    const int64_t k = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
+    if (k >= P) return;
+    tile_list[k] = int(keys[k] & 0xffffffff);
+    const int tile = int(keys[k] >> 32);
+    const int prev = k > 0 ? int(keys[k - 1] >> 32) : -1;
+    for (int t = prev + 1; t <= tile; ++t) tile_start[t] = int(k);
+    if (k == P - 1)
+        for (int t = tile + 1; t <= tiles; ++t) tile_start[t] = int(P);
+}
+
+// ---- tile loops ------------------------------------------------------------------------------------------------
+
+// Shared-memory batch of surfels: pixel geometry, pixel bounds and index.
 template <class S>
 struct Batch {
     Geom<S> g[BLOCK];
@@ -73,6 +124,7 @@ __device__ __forceinline__ ThreadPixel thread_pixel(int W, int H) {
 
 template <class S>
 __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameArgs<S> f) {
+    const Settings st = s.st;
     const auto [t, x, y, inside] = thread_pixel(s.W, s.H);
     const S px = S(x) + S(0.5), py = S(y) + S(0.5);
     const int start = f.tile_start[t], end = f.tile_start[t + 1];
@@ -80,7 +132,7 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
     PixelFwd<S> p;
     pixel_init(p, !inside);
     for (int base = start; base < end; base += BLOCK) {
-        // the barrier also protects `sh` from being overwritten while other threads still read it
+        // the barrier also keeps `sh` from being overwritten while other threads still read it
         if (__syncthreads_count(p.done ? 1 : 0) == BLOCK) break;
         if (base + int(threadIdx.x) < end) stage(sh, f, base + threadIdx.x);
         __syncthreads();
@@ -88,32 +140,42 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
         for (int j = 0; j < n && !p.done; ++j) {
             if (!in_box(sh.b[j], x, y)) continue;
             PairEval<S> e;
-            eval_pair(sh.g[j], px, py, e);
+            eval_pair(st, sh.g[j], px, py, e);
             if (e.alpha == S(0)) continue;
             const SurfelColour<S> sf = surfel_colour(s, sh.id[j]);
             S col[3], pre[3];
             wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, e.u, e.v, col, pre);
-            blend_forward(p, e.alpha, e.z, col, sf.normal, base + j - start);
+            blend_forward(st, p, e.alpha, e.z, col, sf.normal, base + j - start);
         }
     }
     if (inside) store_pixel(f, int64_t(y) * s.W + x, p);
 }
 
+// Sums one gradient slot over the warp, then lane 0 adds it to the surfel's row: one atomic per slot per warp
+// instead of one per pixel. Lanes whose pair did not contribute take part with zero.
 template <class S>
-__global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameArgs<S> f, GradArgs<S> g, S* gbuf) {
+struct WarpSum {
+    S* row;
+    bool valid;
+    __device__ __forceinline__ void operator()(int slot, S v) {
+        v = valid ? v : S(0);
+#pragma unroll
+        for (int offset = 16; offset > 0; offset >>= 1) v += __shfl_xor_sync(FULL_WARP, v, offset);
+        if ((threadIdx.x & 31) == 0 && v != S(0)) atomicAdd(row + slot, v);
+    }
+};
+
+template <class S>
+__global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameArgs<S> f, GradArgs<S> g, S* rows) {
+    const Settings st = s.st;
     const auto [t, x, y, inside] = thread_pixel(s.W, s.H);
     const S px = S(x) + S(0.5), py = S(y) + S(0.5);
     const int start = f.tile_start[t];
     const int GW = grad_width(s.K);
     __shared__ Batch<S> sh;
     __shared__ int max_last;
-    PixelBwd<S> p;
-    p.last = 0;
-    if (inside) {
-        const int64_t o = int64_t(y) * s.W + x;
-        pixel_bwd_init(p, f.Tfinal[o], f.tot + 3 * o, f.last[o], f.med[o], f.depth[o], g.g_rgb + 3 * o, g.g_alpha[o],
-                       g.g_depth[o], g.g_median[o], g.g_normal + 3 * o, g.g_dist[o]);
-    }
+    PixelBwd<S> p{};  // a pixel outside the image keeps last = 0: it never contributes
+    if (inside) load_pixel_bwd(p, f, g, int64_t(y) * s.W + x);
     if (threadIdx.x == 0) max_last = 0;
     __syncthreads();
     if (p.last > 0) atomicMax(&max_last, p.last);
@@ -125,62 +187,95 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
         if (top - 1 - int(threadIdx.x) >= lo) stage(sh, f, top - 1 - threadIdx.x);
         __syncthreads();
         const int n = top - lo;
-        for (int j = 0; j < n; ++j) {
+        for (int j = 0; j < n; ++j) {  // every lane of a warp runs the same j: the warp sums below need them all
             const int rel = top - 1 - j - start;
-            if (rel >= p.last || !in_box(sh.b[j], x, y)) continue;
+            const bool candidate = rel < p.last && in_box(sh.b[j], x, y);
+            if (!__any_sync(FULL_WARP, candidate)) continue;
             PairEval<S> e;
-            eval_pair(sh.g[j], px, py, e);
-            if (e.alpha == S(0)) continue;
-            const int64_t i = sh.id[j];
+            eval_pair(st, sh.g[j], px, py, e);  // rounds as in the forward: the same pairs contribute
+            const bool valid = candidate && e.alpha != S(0);
+            if (!__any_sync(FULL_WARP, valid)) continue;
+            const int i = sh.id[j];
             const SurfelColour<S> sf = surfel_colour(s, i);
-            AtomicAcc<S> acc{gbuf + i * GW};
-            blend_backward(p, sh.g[j], e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+            WarpSum<S> acc{rows + int64_t(i) * GW, valid};
+            PixelBwd<S> q = p;
+            blend_backward(st, q, sh.g[j], e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+            if (valid) p = q;
         }
     }
 }
 
 template <class S>
-__global__ void finalize_kernel(SurfelArgs<S> s, GradArgs<S> g, const S* gbuf) {
+__global__ void finalize_kernel(SurfelArgs<S> s, GradArgs<S> g, const S* rows) {
     const int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
     if (i >= s.M) return;
-    const int K = s.K;
-    finalize_grads(s.T + 9 * i, s.center + 2 * i, gbuf + i * grad_width(K), K, g.v_T + 9 * i, g.v_center + 2 * i,
-                   g.v_depth + i, g.v_normal + 3 * i, g.v_opac + i, g.v_base + 3 * i, g.v_wv + 2 * K * i,
-                   g.v_wp + K * i, g.v_wa + 3 * K * i);
+    finalize_surfel(s, g, i, rows + i * grad_width(s.K));
 }
 
 }  // namespace
 
 template <class S>
-void cuda_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int* count, void* stream) {
-    if (s.M == 0) return;
-    prepare_kernel<S><<<(s.M + 255) / 256, 256, 0, static_cast<cudaStream_t>(stream)>>>(s, geom, bounds, count);
-    check(cudaGetLastError(), "prepare kernel launch");
+void project(const ProjectArgs<S>& a, void* stream) {
+    if (a.N == 0) return;
+    SZ_LAUNCH(project_kernel<S>, blocks_for(a.N), PER_SURFEL, static_cast<cudaStream_t>(stream))(a);
+    check(cudaGetLastError(), "project kernel launch");
 }
 
 template <class S>
-void cuda_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, void* stream) {
+void project_backward(const ProjectGradArgs<S>& a, void* stream) {
+    if (a.N == 0) return;
+    SZ_LAUNCH(project_backward_kernel<S>, blocks_for(a.N), PER_SURFEL, static_cast<cudaStream_t>(stream))(a);
+    check(cudaGetLastError(), "project backward kernel launch");
+}
+
+template <class S>
+void prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int* tile_count, void* stream) {
+    if (s.M == 0) return;
+    SZ_LAUNCH(prepare_kernel<S>, blocks_for(s.M), PER_SURFEL, static_cast<cudaStream_t>(stream))(s, geom, bounds,
+                                                                                                   tile_count);
+    check(cudaGetLastError(), "prepare kernel launch");
+}
+
+void emit_pairs(int M, int W, const int* bounds, const int64_t* pair_end, int64_t* keys, void* stream) {
+    if (M == 0) return;
+    SZ_LAUNCH(emit_pairs_kernel, blocks_for(M), PER_SURFEL, static_cast<cudaStream_t>(stream))(M, W, bounds, pair_end,
+                                                                                                keys);
+    check(cudaGetLastError(), "emit pairs kernel launch");
+}
+
+void tile_starts(int64_t P, int tiles, const int64_t* keys, int* tile_list, int* tile_start, void* stream) {
+    if (P == 0) return;
+    SZ_LAUNCH(tile_starts_kernel, blocks_for(P), PER_SURFEL, static_cast<cudaStream_t>(stream))(P, tiles, keys,
+                                                                                                 tile_list, tile_start);
+    check(cudaGetLastError(), "tile starts kernel launch");
+}
+
+template <class S>
+void forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, void* stream) {
     const int nt = tiles_x(s.W) * tiles_y(s.H);
-    forward_kernel<S><<<nt, BLOCK, 0, static_cast<cudaStream_t>(stream)>>>(s, f);
+    SZ_LAUNCH(forward_kernel<S>, nt, BLOCK, static_cast<cudaStream_t>(stream))(s, f);
     check(cudaGetLastError(), "forward kernel launch");
 }
 
 template <class S>
-void cuda_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, S* gbuf, void* stream) {
+void backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, S* rows, void* stream) {
     if (s.M == 0) return;
     const int nt = tiles_x(s.W) * tiles_y(s.H);
     auto st = static_cast<cudaStream_t>(stream);
-    backward_kernel<S><<<nt, BLOCK, 0, st>>>(s, f, g, gbuf);
+    SZ_LAUNCH(backward_kernel<S>, nt, BLOCK, st)(s, f, g, rows);
     check(cudaGetLastError(), "backward kernel launch");
-    finalize_kernel<S><<<(s.M + 255) / 256, 256, 0, st>>>(s, g, gbuf);
+    SZ_LAUNCH(finalize_kernel<S>, blocks_for(s.M), PER_SURFEL, st)(s, g, rows);
     check(cudaGetLastError(), "finalize kernel launch");
 }
 
-#define SZ_INSTANTIATE_CUDA(S)                                                                                    \
-    template void cuda_prepare<S>(const SurfelArgs<S>&, S*, int*, int*, void*);                                   \
-    template void cuda_forward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, void*);                              \
-    template void cuda_backward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, const GradArgs<S>&, S*, void*);
-SZ_INSTANTIATE_CUDA(float)
-SZ_INSTANTIATE_CUDA(double)
+#define SZ_INSTANTIATE_GPU(S)                                                                                     \
+    template void project<S>(const ProjectArgs<S>&, void*);                                                       \
+    template void project_backward<S>(const ProjectGradArgs<S>&, void*);                                          \
+    template void prepare<S>(const SurfelArgs<S>&, S*, int*, int*, void*);                                        \
+    template void forward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, void*);                                   \
+    template void backward<S>(const SurfelArgs<S>&, const FrameArgs<S>&, const GradArgs<S>&, S*, void*);
+SZ_INSTANTIATE_GPU(float)
+SZ_INSTANTIATE_GPU(double)
 
+}  // namespace SZ_GPU_NAMESPACE
 }  // namespace sz

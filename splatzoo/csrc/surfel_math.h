@@ -19,14 +19,19 @@
 
 namespace sz {
 
-// Same numbers as splatzoo/rasterizers/common.py (tests/test_native.py checks they agree).
-constexpr double NEAR = 0.2;
-constexpr double FAR = 100.0;
-constexpr double ALPHA_MAX = 0.99;
-constexpr double ALPHA_MIN = 1.0 / 255.0;
-constexpr double T_MIN = 1e-4;
-constexpr double FILTER_INV_SQ = 2.0;
-constexpr double PARALLEL_EPS = 1e-6;  // reference.py PARALLEL_EPS
+// The rasterizer's numeric settings. Their values have one source, splatzoo.rasterizers.common.RasterSettings,
+// whose fields the bindings copy into this struct, by name, on every call.
+struct Settings {
+    double near;           // hits closer than this camera depth are culled
+    double far;            // far plane of the distortion term's NDC depth
+    double alpha_max;      // alpha clamp
+    double alpha_min;      // contributions with a smaller alpha are skipped
+    double t_min;          // stop before a contribution that would bring transmittance below this
+    double filter_inv_sq;  // screen-space low-pass filter: rho2d = filter_inv_sq |pixel - centre|^2
+    double parallel_eps;   // a ray with |c_z| <= parallel_eps max(|c_x|, |c_y|) misses the surfel's plane
+};
+
+// Compile time, not a setting: a CUDA block is one tile. RasterSettings.tile is checked against it.
 constexpr int TILE = 16;
 constexpr int TILE_PIXELS = TILE * TILE;
 
@@ -167,8 +172,9 @@ SZ_HD void quat_rotmat(const S* q, S R[9], S qn[4], S& norm) {
 // (a_i, b_i, c_i)); the projected centre c_xy / c_z, the camera depth c_z, the world normal t_w turned to face the
 // camera; and the exact screen box of the support (common.screen_boxes: the disc u^2 + v^2 <= 2 ln(255 o) as a
 // conic, united with the screen filter's disc, padded for rounding). Returns whether the surfel is visible.
+// The support: a contribution is skipped when o exp(-rho/2) < alpha_min, i.e. outside rho <= 2 ln(o / alpha_min).
 template <class S>
-SZ_HD bool project_surfel(const CameraArgs<S>& cam, const S* mean, const S* quat, const S* scale, S opacity, S* T9,
+SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S* mean, const S* quat, const S* scale, S opacity, S* T9,
                           S* center, S* depth, S* normal, S* box) {
     S R[9], qn[4], qnorm;
     quat_rotmat(quat, R, qn, qnorm);
@@ -190,8 +196,8 @@ SZ_HD bool project_surfel(const CameraArgs<S>& cam, const S* mean, const S* quat
     normal[2] = R[8] * flip;
 
     const S o = smin(smax(opacity, S(0)), S(1));
-    const S log_o = log(smax(o * S(255), S(1e-30)));
-    const bool visible = cz > S(NEAR) && log_o > S(0);
+    const S log_o = log(smax(o / S(st.alpha_min), S(1e-30)));
+    const bool visible = cz > S(st.near) && log_o > S(0);
     const S r2 = smax(S(2) * log_o, S(0));
     // Q = T diag(r2, r2, -1) T^T (the dual conic of the disc's image)
     auto Q = [&](int i, int j) {
@@ -210,7 +216,7 @@ SZ_HD bool project_surfel(const CameraArgs<S>& cam, const S* mean, const S* quat
     } else {
         b[0] = -big; b[1] = -big; b[2] = big; b[3] = big;
     }
-    const S rf = sqrt(smax(log_o, S(0)) / S(FILTER_INV_SQ / 2));
+    const S rf = sqrt(smax(log_o, S(0)) / S(st.filter_inv_sq / 2));
     b[0] = nan_min(b[0], center[0] - rf);
     b[1] = nan_min(b[1], center[1] - rf);
     b[2] = nan_max(b[2], center[0] + rf);
@@ -319,38 +325,53 @@ struct PairEval {
     S c0, c1, c2;  // c = h_x x h_y
     S u, v, z;     // local coordinates used for colour (0 where the filter wins) and hit depth
     S ex, raw;     // exp(-rho/2) and o * ex before the clamp
-    S alpha;       // final alpha, 0 where skipped (alpha < 1/255 or z < NEAR)
+    S alpha;       // final alpha, 0 where skipped (alpha < alpha_min or z < near)
     bool use3;     // the ray-splat hit (rho3d) won over the screen filter (rho2d)
 };
 
+// Products and sums of the blend decision, each rounded on its own: on a GPU the compiler may otherwise fuse a
+// multiply and an add into an fma in one inlined copy and not in another, and the forward and backward kernels,
+// which both evaluate every pair, could then disagree on whether a pair on a threshold is blended. The host loops
+// evaluate alphas in one non-inlined function (and the host emulation is built without contraction).
+#ifdef __CUDA_ARCH__
+SZ_HD float rmul(float a, float b) { return __fmul_rn(a, b); }
+SZ_HD float radd(float a, float b) { return __fadd_rn(a, b); }
+SZ_HD double rmul(double a, double b) { return __dmul_rn(a, b); }
+SZ_HD double radd(double a, double b) { return __dadd_rn(a, b); }
+#else
+template <class S> SZ_HD S rmul(S a, S b) { return a * b; }
+template <class S> SZ_HD S radd(S a, S b) { return a + b; }
+#endif
+
 // Branch-free so that a loop over pixels vectorises.
 template <class S>
-SZ_HD void eval_pair(const Geom<S>& g, S x, S y, PairEval<S>& e) {
-    S dx = x - g.cx, dy = y - g.cy;
-    S c0 = dx * g.A[0] + dy * g.B[0] + g.C[0];
-    S c1 = dx * g.A[1] + dy * g.B[1] + g.C[1];
-    S c2 = dx * g.A[2] + dy * g.B[2] + g.C[2];
-    // reference: |cz| > PARALLEL_EPS * max(|cx|, |cy|) and cz != 0 (a ray almost parallel to the plane misses
+SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
+    S dx = radd(x, -g.cx), dy = radd(y, -g.cy);
+    S c0 = radd(radd(rmul(dx, g.A[0]), rmul(dy, g.B[0])), g.C[0]);
+    S c1 = radd(radd(rmul(dx, g.A[1]), rmul(dy, g.B[1])), g.C[1]);
+    S c2 = radd(radd(rmul(dx, g.A[2]), rmul(dy, g.B[2])), g.C[2]);
+    // reference: |cz| > parallel_eps * max(|cx|, |cy|) and cz != 0 (a ray almost parallel to the plane misses
     // it); the first test already fails for cz == 0. Each select below depends on one comparison only: GCC turns
     // selects on combined conditions into branches, and the pixel loop stops vectorising.
-    bool hit = sabs(c2) > S(PARALLEL_EPS) * smax(sabs(c0), sabs(c1));
+    bool hit = sabs(c2) > rmul(S(st.parallel_eps), smax(sabs(c0), sabs(c1)));
     S inv = S(1) / (hit ? c2 : S(1));  // a division inside a select would not be speculated (vectorised)
     inv = hit ? inv : S(0);
-    S uu = c0 * inv, vv = c1 * inv;
-    S rho3 = hit ? uu * uu + vv * vv : S(INFINITY);
-    S rho2 = S(FILTER_INV_SQ) * (dx * dx + dy * dy);
+    S uu = rmul(c0, inv), vv = rmul(c1, inv);
+    S rho3 = hit ? radd(rmul(uu, uu), rmul(vv, vv)) : S(INFINITY);
+    S rho2 = rmul(S(st.filter_inv_sq), radd(rmul(dx, dx), rmul(dy, dy)));
     bool use3 = rho3 <= rho2;
     S rho = use3 ? rho3 : rho2;
     S u = use3 ? uu : S(0);
     S v = use3 ? vv : S(0);
-    S z = use3 ? g.m3[0] * u + g.m3[1] * v + g.m3[2] : g.zc;
-    S ex = sz_exp(S(-0.5) * rho);
-    S raw = g.o * ex;
-    S a = raw < S(ALPHA_MAX) ? raw : S(ALPHA_MAX);
-    a = a >= S(ALPHA_MIN) ? a : S(0);
+    S z = use3 ? radd(radd(rmul(g.m3[0], u), rmul(g.m3[1], v)), g.m3[2]) : g.zc;
+    S ex = sz_exp(rmul(S(-0.5), rho));
+    S raw = rmul(g.o, ex);
+    const S amax = S(st.alpha_max);
+    S a = raw < amax ? raw : amax;
+    a = a >= S(st.alpha_min) ? a : S(0);
     e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
     e.u = u; e.v = v; e.z = z; e.ex = ex; e.raw = raw;
-    e.alpha = z >= S(NEAR) ? a : S(0);
+    e.alpha = z >= S(st.near) ? a : S(0);
     e.use3 = use3;
 }
 
@@ -378,8 +399,12 @@ SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int 
 constexpr int SINCOS_CACHE = 32;
 
 // NDC depth of the distortion term, m(z) = f/(f-n) (1 - n/z), and dm/dz.
-template <class S> SZ_HD S ndc_depth(S z) { return S(FAR / (FAR - NEAR)) * (S(1) - S(NEAR) / z); }
-template <class S> SZ_HD S ndc_depth_grad(S z) { return S(FAR / (FAR - NEAR)) * S(NEAR) / (z * z); }
+template <class S> SZ_HD S ndc_depth(const Settings& st, S z) {
+    return S(st.far / (st.far - st.near)) * (S(1) - S(st.near) / z);
+}
+template <class S> SZ_HD S ndc_depth_grad(const Settings& st, S z) {
+    return S(st.far / (st.far - st.near)) * S(st.near) / (z * z);
+}
 
 // ---- front-to-back compositing of one pixel ---------------------------------------------------------------------
 template <class S>
@@ -403,11 +428,11 @@ SZ_HD void pixel_init(PixelFwd<S>& p, bool done) {
 }
 
 // Blend one valid contribution (alpha > 0) at tile-list position `pos`; col is the clamped colour, n the normal.
-// Stops the pixel, without blending, when the contribution would bring T below T_MIN (reference: `kept`).
+// Stops the pixel, without blending, when the contribution would bring T below t_min (reference: `kept`).
 template <class S>
-SZ_HD void blend_forward(PixelFwd<S>& p, S alpha, S z, const S col[3], const S* n, int pos) {
+SZ_HD void blend_forward(const Settings& st, PixelFwd<S>& p, S alpha, S z, const S col[3], const S* n, int pos) {
     S Tn = p.T * (S(1) - alpha);
-    if (Tn < S(T_MIN)) {
+    if (Tn < S(st.t_min)) {
         p.done = true;
         return;
     }
@@ -419,7 +444,7 @@ SZ_HD void blend_forward(PixelFwd<S>& p, S alpha, S z, const S col[3], const S* 
     p.N[0] += w * n[0];
     p.N[1] += w * n[1];
     p.N[2] += w * n[2];
-    S m = ndc_depth(z);
+    S m = ndc_depth(st, z);
     // distortion sum_i w_i sum_{j<i} w_j (m_i - m_j)^2 from exclusive running sums, as the reference does
     p.dist += w * (m * m * p.A + p.M2 - S(2) * m * p.M1);
     p.A += w;
@@ -466,38 +491,40 @@ SZ_HD void pixel_bwd_init(PixelBwd<S>& p, S Tfinal, const S* tot, int last, int 
 }
 
 // d(alpha, z, u, v) -> surfel slots (opacity, centre, centre depth, and c = h_x x h_y through u, v).
+// Every slot is accumulated on every call (zero where it does not apply), in a fixed order, so a caller may sum
+// each slot across threads (the CUDA warp reduction) with every thread taking part.
 template <class S, class Acc>
-SZ_HD void geom_backward(const Geom<S>& g, const PairEval<S>& e, S g_alpha, S g_z, S g_u, S g_v, Acc& acc) {
-    S g_rho = S(0);
-    if (e.raw <= S(ALPHA_MAX)) {  // torch.clamp passes the gradient where input <= max
-        acc(G_O, g_alpha * e.ex);
-        g_rho = S(-0.5) * g_alpha * e.raw;
+SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S g_alpha, S g_z, S g_u, S g_v,
+                         Acc& acc) {
+    const bool clamped = e.raw > S(st.alpha_max);  // torch.clamp passes the gradient only where input <= max
+    const S g_rho = clamped ? S(0) : S(-0.5) * g_alpha * e.raw;
+    acc(G_O, clamped ? S(0) : g_alpha * e.ex);
+    // the ray-splat hit won (use3): rho = u^2 + v^2 at the hit, whose depth is m3 . (u, v, 1)
+    const bool hit = e.use3;
+    g_u += S(2) * e.u * g_rho + g_z * g.m3[0];
+    g_v += S(2) * e.v * g_rho + g_z * g.m3[1];
+    acc(G_M3 + 0, hit ? g_z * e.u : S(0));
+    acc(G_M3 + 1, hit ? g_z * e.v : S(0));
+    acc(G_M3 + 2, hit ? g_z : S(0));
+    const S inv = S(1) / (hit ? e.c2 : S(1));
+    S gc[3] = {g_u * inv, g_v * inv, -(g_u * e.u + g_v * e.v) * inv};
+    for (int i = 0; i < 3; ++i) gc[i] = hit ? gc[i] : S(0);
+    for (int i = 0; i < 3; ++i) {
+        acc(G_C + i, gc[i]);
+        acc(G_CX + i, e.dx * gc[i]);
+        acc(G_CY + i, e.dy * gc[i]);
     }
-    if (e.use3) {
-        g_u += S(2) * e.u * g_rho + g_z * g.m3[0];
-        g_v += S(2) * e.v * g_rho + g_z * g.m3[1];
-        acc(G_M3 + 0, g_z * e.u);
-        acc(G_M3 + 1, g_z * e.v);
-        acc(G_M3 + 2, g_z);
-        S inv = S(1) / e.c2;
-        S gc[3] = {g_u * inv, g_v * inv, -(g_u * e.u + g_v * e.v) * inv};
-        for (int i = 0; i < 3; ++i) {
-            acc(G_C + i, gc[i]);
-            acc(G_CX + i, e.dx * gc[i]);
-            acc(G_CY + i, e.dy * gc[i]);
-        }
-    } else {
-        // the filter won: rho = F |d|^2 with d = pixel - centre, and the surfel is seen at its centre depth
-        acc(G_ZC, g_z);
-        acc(G_CENTER + 0, S(-2 * FILTER_INV_SQ) * g_rho * e.dx);
-        acc(G_CENTER + 1, S(-2 * FILTER_INV_SQ) * g_rho * e.dy);
-    }
+    // otherwise the filter won: rho = F |d|^2 with d = pixel - centre, and the surfel is seen at its centre depth
+    acc(G_ZC, hit ? S(0) : g_z);
+    acc(G_CENTER + 0, hit ? S(0) : S(-2 * st.filter_inv_sq) * g_rho * e.dx);
+    acc(G_CENTER + 1, hit ? S(0) : S(-2 * st.filter_inv_sq) * g_rho * e.dy);
 }
 
 // One contribution, back to front. Contributions must be visited in reverse blending order, each exactly once.
 // e: the pair (alpha > 0 and pos < last); base..wa: this surfel's colour parameters; n its normal.
+// Calls acc for the same slots in the same order whatever the pair (see geom_backward).
 template <class S, class Acc>
-SZ_HD void blend_backward(PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n, const S* base,
+SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n, const S* base,
                           const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc) {
     S a = e.alpha;
     S oma = S(1) - a;
@@ -508,7 +535,7 @@ SZ_HD void blend_backward(PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e
     S sn_cache[SINCOS_CACHE], cs_cache[SINCOS_CACHE];
     const bool cached = K <= SINCOS_CACHE;
     wave_color(base, wv, wp, wa, K, e.u, e.v, col, pre, cached ? sn_cache : nullptr, cached ? cs_cache : nullptr);
-    S m = ndc_depth(e.z);
+    S m = ndc_depth(st, e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
     S f = p.g_rgb[0] * col[0] + p.g_rgb[1] * col[1] + p.g_rgb[2] * col[2] + p.g_D * e.z +
           p.g_n[0] * n[0] + p.g_n[1] * n[1] + p.g_n[2] * n[2] +
@@ -517,7 +544,7 @@ SZ_HD void blend_backward(PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e
     S g_alpha = Ti * f - (p.suffix + p.g_Tf * p.Tfinal) / oma;
     p.suffix += w * f;
     p.T = Ti;
-    S g_z = w * p.g_D + p.g_dist * S(2) * w * (m * p.A - p.M1) * ndc_depth_grad(e.z);
+    S g_z = w * p.g_D + p.g_dist * S(2) * w * (m * p.A - p.M1) * ndc_depth_grad(st, e.z);
     if (pos == p.med) g_z += p.g_med;
     acc(G_NORMAL + 0, w * p.g_n[0]);
     acc(G_NORMAL + 1, w * p.g_n[1]);
@@ -550,7 +577,7 @@ SZ_HD void blend_backward(PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e
         g_v += gt * wv[2 * k + 1];
     }
     // where the filter wins u = v = 0 are constants (reference: torch.where), so g_u, g_v are dropped there
-    geom_backward(g, e, g_alpha, g_z, g_u, g_v, acc);
+    geom_backward(st, g, e, g_alpha, g_z, g_u, g_v, acc);
 }
 
 // A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
@@ -616,6 +643,16 @@ SZ_HD void box_pixels(const S* box, int W, int H, int* out) {
     out[1] = smin(x1, W - 1);
     out[2] = smax(y0, 0);
     out[3] = smin(y1, H - 1);
+}
+
+// The tiles a pixel range (box_pixels' output) touches, inclusive: the one rule every binning step uses.
+struct TileRange {
+    int x0, x1, y0, y1;
+    SZ_HD int64_t count() const { return x0 <= x1 && y0 <= y1 ? int64_t(x1 - x0 + 1) * (y1 - y0 + 1) : 0; }
+};
+SZ_HD TileRange tile_range(const int* pixels) {
+    if (pixels[0] > pixels[1] || pixels[2] > pixels[3]) return {0, -1, 0, -1};
+    return {pixels[0] / TILE, pixels[1] / TILE, pixels[2] / TILE, pixels[3] / TILE};
 }
 
 }  // namespace sz

@@ -1,70 +1,171 @@
-"""Rasterizer backends, chosen by name: "reference" (PyTorch), "cpu" (C++), "cuda", or "auto"."""
+"""Rasterizer backends: a registry of named backends, each with its device, availability check and render function.
+
+Built in: "cuda" (CUDA kernels), "cpu" (C++ loops), "reference" (PyTorch, on any device) and the test-only
+"cuda-emulated" (the CUDA kernels compiled for the host). `select_backend` makes the one decision of backend and
+device a program needs; `rasterize` renders with a backend by name ("auto": the fastest that runs where the surfels
+are).
+
+Camera gradients: none. Every backend treats the camera as a constant (rasterize detaches it), so a camera whose
+tensors require grad gets no gradient from any backend.
+"""
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
+from typing import Callable
 
-from ..errors import BackendUnavailableError, UnknownNameError
-from ..registry import closest
+import torch
+
+from ..errors import BackendUnavailableError
+from ..registry import Registry
 from ..types import Camera, RenderOutput, Surfels
-
-BACKENDS = ("reference", "cpu", "cuda")
-_warned_fallback = False
+from .common import SETTINGS, RasterSettings
 
 
-def available_backends(device=None) -> list[str]:
-    """Backends that can run here (building the native extension if needed)."""
+@dataclass(frozen=True)
+class Backend:
+    """A rasterizer backend.
+
+    device: "cpu" or "cuda", where its surfels must be; None: any device (the reference).
+    check: raises BackendUnavailableError saying why the backend cannot run here (builds the extension if needed).
+    render: (surfels, camera, background, settings) -> RenderOutput.
+    auto_rank: preference under "auto", lower first; None: never chosen automatically.
+    """
+
+    name: str
+    device: str | None
+    description: str
+    check: Callable[[], None]
+    render: Callable[[Surfels, Camera, object, RasterSettings], RenderOutput]
+    auto_rank: int | None = None
+    test_only: bool = False
+
+    def unavailable_reason(self) -> str | None:
+        """None if the backend runs here, else why not."""
+        try:
+            self.check()
+            return None
+        except BackendUnavailableError as e:
+            return str(e)
+
+    def available(self) -> bool:
+        return self.unavailable_reason() is None
+
+    def torch_device(self) -> torch.device:
+        """The device a program using this backend keeps its model on."""
+        return torch.device(self.device or "cpu")
+
+
+BACKENDS: Registry[Backend] = Registry("rasterizer backend")
+
+
+def register_backend(backend: Backend) -> Backend:
+    return BACKENDS.register(backend.name, backend)
+
+
+def _check_cuda() -> None:
     from . import native
 
-    names = []
-    if native.cuda_available():
-        names.append("cuda")
-    if native.cpu_available():
-        names.append("cpu")
-    names.append("reference")
-    return names
+    if torch.version.cuda is None or not torch.cuda.is_available():
+        raise BackendUnavailableError("no CUDA device: the installed torch has no CUDA support or sees no GPU")
+    native.load("cuda")
+
+
+def _check_cpu() -> None:
+    from . import native
+
+    native.load("cpu")
+
+
+def _render_native(build: str, emulated: bool = False):
+    def render(surfels, camera, background, settings):
+        from . import native
+
+        return native.render(surfels, camera, background, settings, build=build, emulated=emulated)
+
+    return render
+
+
+def _render_reference(surfels, camera, background, settings):
+    from .reference import rasterize_reference
+
+    return rasterize_reference(surfels, camera, background, settings)
+
+
+register_backend(Backend("cuda", "cuda", "CUDA tile rasterizer", _check_cuda, _render_native("cuda"), auto_rank=0))
+register_backend(Backend("cpu", "cpu", "C++ (OpenMP) tile rasterizer", _check_cpu, _render_native("cpu"),
+                         auto_rank=1))
+register_backend(Backend("reference", None, "pure PyTorch, differentiable by autograd (slow; the oracle)",
+                         lambda: None, _render_reference, auto_rank=2))
+register_backend(Backend("cuda-emulated", "cpu", "the CUDA kernels compiled for the host (tests only; slow)",
+                         _check_cpu, _render_native("cpu", emulated=True), test_only=True))
+
+_warned: set = set()
+
+
+def select_backend(backend: str | Backend = "auto", device=None) -> Backend:
+    """The backend to use, by name or "auto" (cuda, then cpu, then reference: the first that runs here).
+
+    device: where the surfels already are (rasterize passes theirs); None lets the backend decide (a program
+    choosing where to put its model: it then uses backend.torch_device()). A backend that cannot run raises
+    BackendUnavailableError, except under "auto", which falls back and warns once when a native backend that
+    should run here failed (e.g. a CUDA build error on a machine with a GPU).
+    """
+    if isinstance(backend, Backend):
+        return backend
+    kind = None if device is None else torch.device(device).type
+    if backend != "auto":
+        b = BACKENDS.get(backend)
+        if kind is not None and b.device not in (None, kind):
+            raise BackendUnavailableError(f"the {b.name} backend renders surfels on the {b.device} device, but these "
+                                          f"are on {kind}; move them with surfels.to('{b.device}') or use another "
+                                          f"backend")
+        return b
+    skipped = []
+    for b in sorted((e.spec for e in BACKENDS.entries() if e.spec.auto_rank is not None), key=lambda b: b.auto_rank):
+        if kind is not None and b.device not in (None, kind):
+            continue
+        reason = b.unavailable_reason()
+        if reason is None:
+            # a native backend that fails where its device exists is worth a warning; a missing GPU is not
+            loud = [(n, r) for n, d, r in skipped if d == "cpu" or torch.cuda.is_available()]
+            if loud and b.name not in _warned:
+                _warned.add(b.name)
+                why = "; ".join(f"{n}: {r}" for n, r in loud)
+                warnings.warn(f"splatzoo: using the {b.name} rasterizer backend because {why}", RuntimeWarning,
+                              stacklevel=3)
+            return b
+        skipped.append((b.name, b.device, reason))
+    raise BackendUnavailableError("no rasterizer backend can run here")  # unreachable: the reference always runs
 
 
 def resolve_backend(backend: str, device) -> str:
-    """Map "auto" to the fastest backend that can run on `device`; check explicit names."""
-    global _warned_fallback
-    if backend not in BACKENDS + ("auto",):
-        raise UnknownNameError(f"unknown rasterizer backend {backend!r}; known: auto, {', '.join(BACKENDS)}"
-                               + closest(backend, BACKENDS + ("auto",)))
-    if backend != "auto":
-        return backend
-    from . import native
-
-    kind = getattr(device, "type", str(device))
-    try:
-        if kind == "cuda":
-            native.load("cuda")
-            return "cuda"
-        native.load("cpu")
-        return "cpu"
-    except BackendUnavailableError as e:
-        if not _warned_fallback:
-            warnings.warn(f"splatzoo: native rasterizer unavailable, using the slow reference backend ({e})",
-                          RuntimeWarning, stacklevel=3)
-            _warned_fallback = True
-        return "reference"
+    """The name of the backend `rasterize` would use for surfels on `device`."""
+    return select_backend(backend, device).name
 
 
-def rasterize(surfels: Surfels, camera: Camera, *, backend: str = "auto", background=None) -> RenderOutput:
-    """Render `surfels` seen from `camera`. Differentiable with respect to every Surfels field.
+def available_backends(device=None) -> list[str]:
+    """User-facing backends that can run here, fastest first (building the native extension if needed)."""
+    ranked = sorted((e.spec for e in BACKENDS.entries() if not e.spec.test_only),
+                    key=lambda b: (b.auto_rank is None, b.auto_rank or 0))
+    kind = None if device is None else torch.device(device).type
+    return [b.name for b in ranked if (kind is None or b.device in (None, kind)) and b.available()]
 
-    backend: "auto" (cuda, then cpu, then reference), "reference", "cpu" or "cuda".
-    background: colour [3] (or a grey scalar) behind the surfels; black by default.
+
+def rasterize(surfels: Surfels, camera: Camera, *, backend: str | Backend = "auto", background=None,
+              settings: RasterSettings = SETTINGS) -> RenderOutput:
+    """Render `surfels` seen from `camera`. Differentiable with respect to every Surfels field (not the camera).
+
+    backend: "auto" (the fastest backend that runs on the surfels' device), a backend name (see BACKENDS.names())
+    or a Backend. background: colour [3] (or a grey scalar) behind the surfels; black by default.
+    settings: the rasterizer's numeric settings (near plane, alpha limits, ...).
     """
     if not isinstance(surfels, Surfels):
         raise TypeError(f"rasterize expects a splatzoo.Surfels, got {type(surfels).__name__}")
     if not isinstance(camera, Camera):
         raise TypeError(f"rasterize expects a splatzoo.Camera, got {type(camera).__name__}")
+    if not isinstance(settings, RasterSettings):
+        raise TypeError(f"settings must be a splatzoo RasterSettings, got {type(settings).__name__}")
     surfels.validate()
-    name = resolve_backend(backend, surfels.means.device)
-    if name == "reference":
-        from .reference import rasterize_reference
-
-        return rasterize_reference(surfels, camera, background)
-    from . import native
-
-    return native.rasterize_native(surfels, camera, background, device_kind=name)
+    b = select_backend(backend, surfels.means.device)
+    return b.render(surfels, camera.detach(), background, settings)

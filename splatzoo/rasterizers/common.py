@@ -1,24 +1,49 @@
-"""Constants and per-surfel set-up shared by every rasterizer backend.
+"""The rasterizer settings and the per-surfel set-up shared by every backend.
 
-The same numbers are written in splatzoo/csrc/surfel_math.h; tests/test_native.py checks the two agree.
+RasterSettings is the one source of the rasterizer's numeric settings: the reference reads it, and the native
+backends copy it field by field into the C++ `sz::Settings` struct (csrc/surfel_math.h) on every call.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
 from ..geometry import quat_to_rotmat
 from ..types import Camera, Surfels
 
-NEAR = 0.2            # hits closer than this camera depth are culled (official 2DGS)
-FAR = 100.0           # far plane of the NDC depth used by the distortion term
-ALPHA_MAX = 0.99      # alpha clamp
-ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
-T_MIN = 1e-4          # stop before a contribution that would bring transmittance below this
-FILTER_INV_SQ = 2.0   # screen-space low-pass filter: rho2d = FILTER_INV_SQ * |pixel - centre|^2
-TILE = 16             # tile size of the native tile rasterizers
+
+@dataclass(frozen=True)
+class RasterSettings:
+    """Numeric settings of every rasterizer backend (the defaults follow the official 2DGS renderer)."""
+
+    near: float = 0.2              # hits closer than this camera depth are culled
+    far: float = 100.0             # far plane of the NDC depth used by the distortion term
+    alpha_max: float = 0.99        # alpha clamp
+    alpha_min: float = 1.0 / 255.0  # contributions with a smaller alpha are skipped
+    t_min: float = 1e-4            # stop before a contribution that would bring transmittance below this
+    filter_inv_sq: float = 2.0     # screen-space low-pass filter: rho2d = filter_inv_sq * |pixel - centre|^2
+    parallel_eps: float = 1e-6     # a ray with |c_z| <= parallel_eps max(|c_x|, |c_y|) misses the surfel's plane
+    tile: int = 16                 # tile size of the native tile rasterizers (compiled in: checked, not set)
+
+    def __post_init__(self) -> None:
+        from ..errors import SplatzooError
+
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise SplatzooError(f"RasterSettings.{f.name} must be a finite number, got {v!r}")
+        if not (0 < self.near < self.far):
+            raise SplatzooError(f"RasterSettings: need 0 < near < far, got near={self.near}, far={self.far}")
+        if not (0 < self.alpha_min <= self.alpha_max < 1):
+            raise SplatzooError(f"RasterSettings: need 0 < alpha_min <= alpha_max < 1, got {self.alpha_min}, "
+                                f"{self.alpha_max}")
+        if not (0 <= self.t_min < 1) or self.filter_inv_sq <= 0 or self.parallel_eps < 0:
+            raise SplatzooError("RasterSettings: need 0 <= t_min < 1, filter_inv_sq > 0 and parallel_eps >= 0")
+
+
+SETTINGS = RasterSettings()
 
 
 @dataclass
@@ -39,7 +64,7 @@ class Projected:
     visible: torch.Tensor
 
 
-def project(s: Surfels, cam: Camera) -> Projected:
+def project(s: Surfels, cam: Camera, settings: RasterSettings = SETTINGS) -> Projected:
     R = quat_to_rotmat(s.quats)
     tu, tv, tw = R[..., 0], R[..., 1], R[..., 2]
     KR = cam.K @ cam.R
@@ -52,23 +77,23 @@ def project(s: Surfels, cam: Camera) -> Projected:
     view = s.means - cam.center
     facing = ((tw * view).sum(-1, keepdim=True) > 0).to(tw.dtype)
     normal = tw * (1 - 2 * facing)
-    boxes, visible = screen_boxes(T.detach(), center_px.detach(), depth.detach(), s.opacities.detach(), cam)
+    boxes, visible = screen_boxes(T.detach(), center_px.detach(), depth.detach(), s.opacities.detach(), cam, settings)
     return Projected(T, center_px, depth, normal, boxes, visible)
 
 
 @torch.no_grad()
-def screen_boxes(T, center_px, depth, opacities, cam: Camera):
+def screen_boxes(T, center_px, depth, opacities, cam: Camera, settings: RasterSettings = SETTINGS):
     """Exact screen bounds of each surfel's support.
 
-    A contribution is skipped when o exp(-rho/2) < 1/255, so the support is the disc u^2+v^2 <= r^2 with
-    r^2 = 2 ln(255 o), together with the filter disc |d|^2 <= ln(255 o) / (FILTER_INV_SQ / 2) around the
+    A contribution is skipped when o exp(-rho/2) < alpha_min, so the support is the disc u^2+v^2 <= r^2 with
+    r^2 = 2 ln(o / alpha_min), together with the filter disc |d|^2 <= ln(o / alpha_min) / (filter_inv_sq / 2) around the
     projected centre. Bounding both exactly means the boxes only save work and never change a pixel.
     The disc's image is a conic; if the disc reaches the camera plane it is unbounded and we use the
     whole image.
     """
     n = T.shape[0]
-    log_o = torch.log((opacities.clamp(0, 1) * 255.0).clamp_min(1e-30))
-    visible = (depth > NEAR) & (log_o > 0)
+    log_o = torch.log((opacities.clamp(0, 1) / settings.alpha_min).clamp_min(1e-30))
+    visible = (depth > settings.near) & (log_o > 0)
     r2 = (2 * log_o).clamp_min(0)
     # Dual conic Q = T diag(r^2, r^2, -1) T^T; the vertical tangent lines x solve Q00 - 2x Q02 + x^2 Q22 = 0.
     D = torch.stack([r2, r2, -torch.ones_like(r2)], -1)
@@ -83,7 +108,7 @@ def screen_boxes(T, center_px, depth, opacities, cam: Camera):
     inf_box = torch.tensor([-big, -big, big, big], dtype=T.dtype, device=T.device).expand(n, 4)
     disc = torch.stack([cx - hx, cy - hy, cx + hx, cy + hy], -1)
     disc = torch.where(bounded[:, None], disc, inf_box)
-    rf = torch.sqrt(log_o.clamp_min(0) / (FILTER_INV_SQ / 2))
+    rf = torch.sqrt(log_o.clamp_min(0) / (settings.filter_inv_sq / 2))
     filt = torch.cat([center_px - rf[:, None], center_px + rf[:, None]], -1)
     boxes = torch.cat([torch.minimum(disc[:, :2], filt[:, :2]), torch.maximum(disc[:, 2:], filt[:, 2:])], -1)
     boxes = torch.nan_to_num(boxes, nan=0.0, posinf=big, neginf=-big).clamp(-big, big)
@@ -94,9 +119,9 @@ def screen_boxes(T, center_px, depth, opacities, cam: Camera):
     return boxes, visible & on_screen
 
 
-def ndc_depth(z: torch.Tensor) -> torch.Tensor:
+def ndc_depth(z: torch.Tensor, settings: RasterSettings = SETTINGS) -> torch.Tensor:
     """The distortion term's depth map m(z) = f/(f-n) (1 - n/z)."""
-    return FAR / (FAR - NEAR) * (1 - NEAR / z)
+    return settings.far / (settings.far - settings.near) * (1 - settings.near / z)
 
 
 def background_tensor(background, like: torch.Tensor) -> torch.Tensor:
@@ -111,6 +136,6 @@ def background_tensor(background, like: torch.Tensor) -> torch.Tensor:
     return bg
 
 
-def max_support_radius_sigma() -> float:
-    """Largest support radius in sigmas (opacity 1): sqrt(2 ln 255) ~ 3.33."""
-    return math.sqrt(2 * math.log(255.0))
+def max_support_radius_sigma(settings: RasterSettings = SETTINGS) -> float:
+    """Largest support radius in sigmas (opacity 1): sqrt(2 ln(1 / alpha_min)) ~ 3.33."""
+    return math.sqrt(2 * math.log(1.0 / settings.alpha_min))

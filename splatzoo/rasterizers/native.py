@@ -1,9 +1,9 @@
-"""Native tile rasterizers: C++ (OpenMP) on the CPU and CUDA on the GPU, built lazily from splatzoo/csrc/ (package data).
+"""Native tile rasterizers, built lazily from splatzoo/csrc/ (package data): one pipeline on three devices.
 
-On the CPU one call does everything (`render`): the camera-dependent set-up of common.project and
-common.screen_boxes, culling, the depth sort and the tile loop, each with a hand-written backward down to means,
-quats and scales (see csrc/surfel_math.h for the maths). On the GPU the set-up stays in PyTorch (`common.project`,
-autograd through it) and the native op takes the visible surfels, sorted front to back.
+`render` makes one extension call for the whole render: projection (project_surfel), culling, the depth sort, tile
+binning and the tile loop, with the hand-written backward of each (csrc/surfel_math.h holds the maths). It runs the
+C++ loops on CPU tensors, the CUDA kernels on CUDA tensors, and, with emulated=True, the same CUDA kernels compiled
+for the host (csrc/cuda_emulation.h) on CPU tensors: the test-only "cuda-emulated" backend.
 
 The extension is compiled on first use with torch.utils.cpp_extension.load into a cache directory
 ($SPLATZOO_EXTENSIONS_DIR, else $TORCH_EXTENSIONS_DIR/splatzoo, else ~/.cache/splatzoo/torch_extensions), never at
@@ -16,18 +16,23 @@ import os
 import platform
 import re
 import threading
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import torch
 
 from ..errors import BackendUnavailableError
 from ..types import Camera, RenderOutput, Surfels
-from .common import background_tensor, project
+from .common import RasterSettings, background_tensor
 
 CSRC = Path(__file__).resolve().parents[1] / "csrc"  # shipped inside the package (package data)
-CPU_SOURCES = ("ext.cpp", "rasterize_cpu.cpp")
+# The CPU build also holds the CUDA kernels compiled for the host emulation (the cuda-emulated backend).
+CPU_SOURCES = ("ext.cpp", "rasterize_cpu.cpp", "rasterize_cuda_emulated.cpp")
 CUDA_SOURCES = CPU_SOURCES + ("rasterize_cuda.cu",)
-HEADERS = ("surfel_math.h", "rasterize.h")
+HEADERS = ("surfel_math.h", "rasterize.h", "cuda_emulation.h")
+OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
+SURFEL_FIELDS = ("means", "quats", "scales", "opacities", "base_color", "wave_vectors", "wave_phases",
+                 "wave_amplitudes")
 
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
@@ -169,118 +174,82 @@ def _build(kind: str):
             + ". Set SPLATZOO_VERBOSE_BUILD=1 to see the full build log.") from None
 
 
-# Saved-state tensors returned by the extension after the 6 outputs (see csrc/ext.cpp).
-_N_PUBLIC = 6
+@dataclass(frozen=True)
+class _Call:
+    """Everything about one render call that is not a differentiable surfel tensor."""
+
+    C: object
+    settings: object  # the extension's Settings struct
+    KR: torch.Tensor
+    Kt: torch.Tensor
+    eye: torch.Tensor
+    width: int
+    height: int
+    wave_counts: torch.Tensor | None
+    emulated: bool
 
 
-class _RasterizeFn(torch.autograd.Function):
-    """Per-surfel tensors (visible, front to back) -> the six image outputs, with the hand-written backward."""
-
-    @staticmethod
-    def forward(ctx, C, width, height, T, center, depth, normal, opac, base, wv, wp, wa, boxes, wave_counts=None):
-        # wave_counts: int32 [M] or None (all K waves); it is not differentiable
-        out = C.forward(T, center, depth, normal, opac, base, wv, wp, wa, boxes, width, height, wave_counts)
-        ctx.C, ctx.size, ctx.wave_counts = C, (width, height), wave_counts
-        ctx.save_for_backward(T, center, depth, normal, opac, base, wv, wp, wa, boxes, *out)
-        saved = out[_N_PUBLIC:]
-        ctx.mark_non_differentiable(*saved)
-        return tuple(out[:_N_PUBLIC])
-
-    @staticmethod
-    def backward(ctx, *grads):
-        t = ctx.saved_tensors
-        inputs, outs = t[:10], list(t[10:])
-        g = [torch.zeros_like(o) if gr is None else gr for gr, o in zip(grads, outs[:_N_PUBLIC])]
-        v = ctx.C.backward(*inputs, ctx.size[0], ctx.size[1], outs, g, ctx.wave_counts)
-        return (None, None, None, *v, None, None)
-
-
-class _RenderCpuFn(torch.autograd.Function):
-    """Surfels -> the six image outputs on the CPU: projection, culling, sorting and the tile loop all in C++, with
-    the hand-written backward of each (csrc/ext.cpp render / render_backward)."""
+class _RenderFn(torch.autograd.Function):
+    """Surfel fields -> the six image outputs (before the background), with the extension's hand-written backward.
+    Camera tensors are constants: no backend propagates gradients to the camera (see rasterizers.rasterize)."""
 
     @staticmethod
-    def forward(ctx, C, camera_tensors, width, height, wave_counts, means, quats, scales, opac, base, wv, wp, wa):
-        KR, Kt, eye = camera_tensors
-        out = C.render(means, quats, scales, opac, base, wv, wp, wa, KR, Kt, eye, width, height, wave_counts)
-        ctx.C, ctx.size, ctx.has_counts = C, (width, height), wave_counts is not None
-        ctx.save_for_backward(means, quats, scales, KR, Kt, eye, *out)
-        return tuple(out[:_N_PUBLIC])
+    def forward(ctx, call: _Call, *surfel_tensors):
+        means, quats, scales = surfel_tensors[:3]
+        out, state = call.C.render(call.settings, *surfel_tensors, call.wave_counts, call.KR, call.Kt, call.eye,
+                                   call.width, call.height, call.emulated)
+        ctx.call = call
+        ctx.state_names = tuple(state)
+        ctx.save_for_backward(means, quats, scales, *state.values())
+        return tuple(out[k] for k in OUTPUTS)
 
     @staticmethod
-    def backward(ctx, *grads):
-        t = ctx.saved_tensors
-        saved = list(t[6:])
-        g = [torch.zeros_like(o) if gr is None else gr for gr, o in zip(grads, saved[:_N_PUBLIC])]
-        v = ctx.C.render_backward(*t[:6], ctx.size[0], ctx.size[1], saved, g, ctx.has_counts)
-        return (None, None, None, None, None, *v)
+    def backward(ctx, *cotangents):
+        call = ctx.call
+        means, quats, scales, *saved = ctx.saved_tensors
+        state = dict(zip(ctx.state_names, saved))
+        v_out = {k: g for k, g in zip(OUTPUTS, cotangents) if g is not None}
+        v = call.C.render_backward(call.settings, means, quats, scales, call.KR, call.Kt, call.eye, call.width,
+                                   call.height, state, v_out, call.emulated)
+        return (None, *(v[k] for k in SURFEL_FIELDS))
 
 
-def rasterize_native(surfels: Surfels, camera: Camera, background=None, *, device_kind: str = "cpu") -> RenderOutput:
-    """Render with the native tile rasterizer; same contract and maths as rasterize_reference."""
-    C = load(device_kind)
+_settings_cache: dict = {}
+
+
+def settings_struct(C, settings: RasterSettings):
+    """The extension's Settings struct for `settings`, every field set by name (and checked to be every field)."""
+    key = (id(C), settings)
+    if key not in _settings_cache:
+        if settings.tile != C.TILE:
+            raise BackendUnavailableError(f"RasterSettings.tile={settings.tile}, but the native rasterizer is compiled "
+                                          f"for tiles of {C.TILE} pixels")
+        names = {f.name for f in fields(settings)} - {"tile"}
+        if names != set(C.SETTINGS_FIELDS):
+            raise BackendUnavailableError(f"the native rasterizer's settings {sorted(C.SETTINGS_FIELDS)} differ from "
+                                          f"RasterSettings {sorted(names)}: rebuild it (stale build cache?)")
+        struct = C.Settings()
+        for name in names:
+            setattr(struct, name, float(getattr(settings, name)))
+        _settings_cache[key] = struct
+    return _settings_cache[key]
+
+
+def render(surfels: Surfels, camera: Camera, background=None, settings: RasterSettings | None = None, *,
+           build: str = "cpu", emulated: bool = False) -> RenderOutput:
+    """Render with the native tile rasterizer of `build` ("cpu" or "cuda"); same contract and maths as
+    rasterize_reference. emulated=True runs the CUDA kernels under the host emulation (CPU tensors)."""
+    C = load(build)
     s = surfels
-    want = "cuda" if device_kind == "cuda" else "cpu"
+    want = "cuda" if build == "cuda" else "cpu"
     if s.means.device.type != want:
-        raise BackendUnavailableError(f"the {device_kind} rasterizer needs surfels on the {want} device, got "
-                                      f"{s.means.device}; move them with surfels.to('{want}') or pick another backend")
+        raise BackendUnavailableError(f"this rasterizer needs surfels on the {want} device, got {s.means.device}; "
+                                      f"move them with surfels.to('{want}') or pick another backend")
     if s.means.dtype not in (torch.float32, torch.float64):
         raise BackendUnavailableError(f"the native rasterizer supports float32 and float64, got {s.means.dtype}")
     cam = camera.to(s.means.device, s.means.dtype)
-    bg = background_tensor(background, s.means)
-    render = _render_cpu if device_kind == "cpu" else _render_cuda
-    rgb, alpha, depth, median, normal, dist = render(C, s, cam)
-    rgb = rgb + (1 - alpha)[..., None] * bg
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist)
-
-
-def _render_cpu(C, s: Surfels, cam: Camera) -> tuple:
-    """The six outputs (before the background): projection, culling, sorting and the tile loop in one C++ call."""
-    camera_tensors = (cam.K @ cam.R, cam.K @ cam.t, cam.center)
-    return _RenderCpuFn.apply(C, camera_tensors, cam.width, cam.height, s.wave_counts, s.means, s.quats, s.scales,
-                              s.opacities, s.base_color, s.wave_vectors, s.wave_phases, s.wave_amplitudes)
-
-
-def _render_cuda(C, s: Surfels, cam: Camera) -> tuple:
-    """The six outputs (before the background): the per-surfel set-up in PyTorch (common.project), the tile loop
-    native."""
-    H, W = cam.height, cam.width
-    if s.num:
-        proj = project(s, cam)
-        vis = torch.nonzero(proj.visible).squeeze(1)
-        # front to back by centre depth, ties by index: the same order as the reference
-        order = vis[torch.sort(proj.depth.detach()[vis], stable=True).indices]
-    else:
-        order = torch.zeros(0, dtype=torch.long, device=s.means.device)
-    if order.numel() == 0:
-        z = s.means.new_zeros
-        # keep the graph connected so .backward() works on an empty render
-        tie = (s.means.sum() + s.opacities.sum() + s.base_color.sum()) * 0
-        return z(H, W, 3) + tie, z(H, W), z(H, W), z(H, W), z(H, W, 3), z(H, W)
-    counts = None if s.wave_counts is None else s.wave_counts[order].to(torch.int32).contiguous()
-    return _RasterizeFn.apply(
-        C, W, H, proj.T[order], proj.center_px[order], proj.depth[order], proj.normal[order],
-        s.opacities[order], s.base_color[order], s.wave_vectors[order], s.wave_phases[order],
-        s.wave_amplitudes[order], proj.boxes[order].detach(), counts)
-    # CUDA: the per-surfel set-up in PyTorch (common.project), the tile loop native
-    if s.num:
-        proj = project(s, cam)
-        vis = torch.nonzero(proj.visible).squeeze(1)
-        # front to back by centre depth, ties by index: the same order as the reference
-        order = vis[torch.sort(proj.depth.detach()[vis], stable=True).indices]
-    else:
-        order = torch.zeros(0, dtype=torch.long, device=s.means.device)
-    if order.numel() == 0:
-        z = s.means.new_zeros
-        # keep the graph connected so .backward() works on an empty render
-        tie = (s.means.sum() + s.opacities.sum() + s.base_color.sum()) * 0
-        rgb = z(H, W, 3) + tie + bg
-        return RenderOutput(rgb=rgb, alpha=z(H, W), depth=z(H, W), median_depth=z(H, W), normal=z(H, W, 3),
-                            distortion=z(H, W))
-    counts = None if s.wave_counts is None else s.wave_counts[order].to(torch.int32).contiguous()
-    rgb, alpha, depth, median, normal, dist = _RasterizeFn.apply(
-        C, W, H, proj.T[order], proj.center_px[order], proj.depth[order], proj.normal[order],
-        s.opacities[order], s.base_color[order], s.wave_vectors[order], s.wave_phases[order],
-        s.wave_amplitudes[order], proj.boxes[order].detach(), counts)
-    rgb = rgb + (1 - alpha)[..., None] * bg
+    call = _Call(C, settings_struct(C, settings or RasterSettings()), (cam.K @ cam.R).detach(),
+                 (cam.K @ cam.t).detach(), cam.center.detach(), cam.width, cam.height, s.wave_counts, emulated)
+    rgb, alpha, depth, median, normal, dist = _RenderFn.apply(call, *(getattr(s, k) for k in SURFEL_FIELDS))
+    rgb = rgb + (1 - alpha)[..., None] * background_tensor(background, s.means)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist)

@@ -9,15 +9,14 @@ from __future__ import annotations
 import torch
 
 from ..types import Camera, RenderOutput, Surfels
-from .common import ALPHA_MAX, ALPHA_MIN, FILTER_INV_SQ, NEAR, T_MIN, Projected, background_tensor, ndc_depth, project
+from .common import SETTINGS, Projected, RasterSettings, background_tensor, ndc_depth, project
 
 # (pixel, surfel, wave) triples evaluated at once; bounds memory with autograd to a few hundred MB.
 PAIR_BUDGET = 1 << 19
-# A ray meeting the surfel plane at |(u, v)| > 1e6 sigma is treated as missing it (avoids overflow).
-PARALLEL_EPS = 1e-6
 
 
-def rasterize_reference(surfels: Surfels, camera: Camera, background=None, *, pair_budget: int = PAIR_BUDGET) -> RenderOutput:
+def rasterize_reference(surfels: Surfels, camera: Camera, background=None, settings: RasterSettings = SETTINGS, *,
+                        pair_budget: int = PAIR_BUDGET) -> RenderOutput:
     s = surfels
     dtype, device = s.means.dtype, s.means.device
     cam = camera.to(device, dtype)
@@ -28,7 +27,7 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, *, pa
         "median_depth": s.means.new_zeros(H, W), "normal": s.means.new_zeros(H, W, 3),
         "distortion": s.means.new_zeros(H, W),
     }
-    proj = project(s, cam) if s.num else None
+    proj = project(s, cam, settings) if s.num else None
     if proj is None or not bool(proj.visible.any()):
         return _finish(out, bg)
     order = _depth_order(proj)
@@ -51,7 +50,7 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, *, pa
                 ym = (y0 + y1) // 2
                 stack += [(x0, x1, y0, ym, idx, bx), (x0, x1, ym, y1, idx, bx)]
             continue
-        pieces.append((x0, x1, y0, y1, _shade_rect(s, proj, idx, x0, x1, y0, y1)))
+        pieces.append((x0, x1, y0, y1, _shade_rect(s, proj, idx, x0, x1, y0, y1, settings)))
     # assemble without in-place writes into tensors autograd needs: pad each piece to full size and sum
     for key in out:
         acc = out[key]
@@ -76,7 +75,8 @@ def _depth_order(proj: Projected) -> torch.Tensor:
     return vis[torch.sort(d, stable=True).indices]
 
 
-def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int, y0: int, y1: int) -> dict:
+def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int, y0: int, y1: int,
+                st: RasterSettings) -> dict:
     """Composite surfels `idx` (front to back) over the pixels of one rectangle; values before background."""
     dtype, device = s.means.dtype, s.means.device
     h, w = y1 - y0, x1 - x0
@@ -90,26 +90,26 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
     hy = py[..., None] * m3 - m2
     cr = torch.linalg.cross(hx, hy)
     cz = cr[..., 2]
-    hits = (cz.abs() > PARALLEL_EPS * torch.maximum(cr[..., 0].abs(), cr[..., 1].abs())) & (cz != 0)
+    hits = (cz.abs() > st.parallel_eps * torch.maximum(cr[..., 0].abs(), cr[..., 1].abs())) & (cz != 0)
     cz_safe = torch.where(hits, cz, torch.ones_like(cz))
     u = torch.where(hits, cr[..., 0] / cz_safe, torch.zeros_like(cz))
     v = torch.where(hits, cr[..., 1] / cz_safe, torch.zeros_like(cz))
     rho3d = u * u + v * v
     d = torch.stack([px - proj.center_px[idx, 0], py - proj.center_px[idx, 1]], -1)  # [P,n,2]
-    rho2d = FILTER_INV_SQ * (d * d).sum(-1)
+    rho2d = st.filter_inv_sq * (d * d).sum(-1)
     use3d = hits & (rho3d <= rho2d)
     rho = torch.where(use3d, rho3d, rho2d)
     # where the screen filter wins, the surfel is seen as its centre (depth and colour at u = v = 0)
     u = torch.where(use3d, u, torch.zeros_like(u))
     v = torch.where(use3d, v, torch.zeros_like(v))
     z = torch.where(use3d, m3[:, 0] * u + m3[:, 1] * v + m3[:, 2], proj.depth[idx].expand_as(u))
-    alpha = torch.clamp(s.opacities[idx] * torch.exp(-0.5 * rho), max=ALPHA_MAX)
-    valid = (alpha >= ALPHA_MIN) & (z >= NEAR)
+    alpha = torch.clamp(s.opacities[idx] * torch.exp(-0.5 * rho), max=st.alpha_max)
+    valid = (alpha >= st.alpha_min) & (z >= st.near)
     alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
-    # front-to-back compositing; a prefix of the surfels is kept until T would fall below T_MIN
+    # front-to-back compositing; a prefix of the surfels is kept until T would fall below t_min
     T_after = torch.cumprod(1 - alpha, dim=1)
     T_before = torch.cat([torch.ones_like(T_after[:, :1]), T_after[:, :-1]], dim=1)
-    kept = T_after >= T_MIN
+    kept = T_after >= st.t_min
     weight = torch.where(kept, alpha * T_before, torch.zeros_like(alpha))  # [P,n]
     T_final = torch.prod(torch.where(kept, 1 - alpha, torch.ones_like(alpha)), dim=1)
     color = _wave_color(s, idx, u, v)  # [P,n,3]
@@ -125,7 +125,7 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
     last = (mask * pos).argmax(1)
     median = torch.where(mask.any(1), z_safe.gather(1, last[:, None]).squeeze(1), torch.zeros_like(acc))
     # distortion: sum_i w_i sum_{j<i} w_j (m_i - m_j)^2 from exclusive running sums
-    m = ndc_depth(z_safe)
+    m = ndc_depth(z_safe, st)
     A = torch.cumsum(weight, 1) - weight
     M1 = torch.cumsum(weight * m, 1) - weight * m
     M2 = torch.cumsum(weight * m * m, 1) - weight * m * m

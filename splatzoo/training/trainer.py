@@ -17,7 +17,7 @@ import torch
 
 from ..errors import SplatzooError
 from ..io import torch_save, write_json, write_text
-from ..rasterizers import rasterize, resolve_backend
+from ..rasterizers import rasterize, select_backend
 from ..zoo import create_model, make_config, model_from_checkpoint, save_model
 from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
@@ -88,12 +88,6 @@ def select_initial_points(points: torch.Tensor, colors: torch.Tensor, n: int | N
 def _position_lr(cfg: TrainConfig, step: int, extent: float) -> float:
     t = min(max(step / max(cfg.iterations, 1), 0.0), 1.0)
     return extent * math.exp(math.log(cfg.position_lr_init) * (1 - t) + math.log(cfg.position_lr_final) * t)
-
-
-def _device_for(backend: str) -> torch.device:
-    if backend in ("cuda",) or (backend == "auto" and torch.cuda.is_available()):
-        return torch.device("cuda")
-    return torch.device("cpu")
 
 
 class _Progress:
@@ -167,8 +161,8 @@ def train(scene, model: str = "gabor", model_options: dict | None = None, config
     if not scene.train:
         raise SplatzooError(f"scene {scene.name!r} has no training views")
 
-    backend = resolve_backend(cfg.backend, _device_for(cfg.backend))
-    device = torch.device("cuda") if backend == "cuda" else torch.device("cpu")
+    chosen = select_backend(cfg.backend)  # the one decision of backend and device for this run
+    backend, device = chosen.name, chosen.torch_device()
     model_config = make_config(model, **(model_options or {}))
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "config.json", _config_record(data_path, scene_options, model, model_config, cfg, scene))
