@@ -1,13 +1,15 @@
 """Rasterizer benchmark: forward and forward+backward time per backend, for 2DGS (K=0) and Gabor (K=4) surfels.
 
-    python benchmarks/bench_rasterizer.py [--json out.json] [--repeats 3] [--quick]
+    python benchmarks/bench_rasterizer.py [--json out.json] [--repeats 3] [--quick | --gpu] [--backends cpu,cuda]
     splatzoo bench [...]              (the same, from the CLI)
 
-Scenes are random but realistic: surfels on a sphere and a back wall in front of the camera, 1-4 pixels sigma.
-"pairs" counts the (surfel, pixel) pairs the native tile loop evaluates: for every (surfel, tile) pair, the pixel
-rows of the tile inside the surfel's exact screen box, 16 pixels each. The same count is used for the reference so
-the rates compare equal work. Rates are per core: divided by torch.get_num_threads(). "op" columns time the
-extension's forward/backward alone, without the PyTorch set-up (projection, sorting, gathers) around it.
+Scenes: "sphere" (surfels on a sphere and a back wall, 1-4 px sigma, opacity 0.2-1) and "dense" (surfels spread
+uniformly over the image at depth 2-4, 1.5-5 px sigma, opacity 0.1-0.95, tilted up to 50 degrees: many
+overlapping semi-transparent layers per pixel). K=4a is the adaptive case: K=4 with per-surfel wave counts drawn
+uniformly from 0..4. "pairs" counts the (surfel, pixel) pairs a tile loop evaluates: for every (surfel, tile) pair,
+the pixel rows of the tile inside the surfel's exact screen box, 16 pixels each; rates are per core for the CPU
+(divided by torch.get_num_threads()) and per GPU for CUDA. Times are end to end (`rasterize`, every field requiring
+grad; the backward of a loss on rgb, depth, normal and distortion), median of --repeats after one warm-up.
 """
 from __future__ import annotations
 
@@ -22,21 +24,36 @@ from pathlib import Path
 
 import torch
 
-CONFIGS = (  # (name, width, height, surfels, backends allowed)
-    ("128x128/5k", 128, 128, 5_000, ("cuda", "cpu", "reference")),
-    ("256x256/20k", 256, 256, 20_000, ("cuda", "cpu", "reference")),
-    ("1920x1080/200k", 1920, 1080, 200_000, ("cuda", "cpu")),
+# (name, scene kind, width, height, surfels, backends allowed)
+CONFIGS = (
+    ("128x128/5k", "sphere", 128, 128, 5_000, ("cuda", "cpu", "reference")),
+    ("128x128/5k dense", "dense", 128, 128, 5_000, ("cuda", "cpu", "reference")),
+    ("256x256/20k", "sphere", 256, 256, 20_000, ("cuda", "cpu", "reference")),
+    ("1920x1080/200k", "sphere", 1920, 1080, 200_000, ("cuda", "cpu")),
 )
+GPU_CONFIGS = (
+    ("1920x1080/100k", "sphere", 1920, 1080, 100_000, ("cuda",)),
+    ("1920x1080/500k", "sphere", 1920, 1080, 500_000, ("cuda",)),
+    ("1920x1080/1M", "sphere", 1920, 1080, 1_000_000, ("cuda",)),
+    ("1920x1080/200k dense", "dense", 1920, 1080, 200_000, ("cuda",)),
+)
+WAVES = ("0", "4", "4a")
 
 
-def random_scene(n: int, width: int, height: int, K: int, seed: int = 0, dtype=torch.float32):
-    """n surfels (70% on a unit sphere, 30% on a wall behind it) seen from 4 units away, 1-4 px sigma."""
-    from splatzoo.testing import sphere_and_wall
+def make_scene(kind: str, n: int, width: int, height: int, waves: str, seed: int = 0, dtype=torch.float32):
+    """A benchmark scene; waves "K" or "Ka" (K waves with per-surfel counts drawn from 0..K)."""
+    from splatzoo.testing import dense_overlap, sphere_and_wall
 
-    return sphere_and_wall(n, width, height, K, seed=seed, dtype=dtype)
+    K = int(waves.rstrip("a"))
+    make = dense_overlap if kind == "dense" else sphere_and_wall
+    s, cam = make(n, width, height, K, seed=seed, dtype=dtype)
+    if waves.endswith("a"):
+        s.wave_counts = torch.randint(0, K + 1, (n,), generator=torch.Generator().manual_seed(seed), dtype=torch.int32)
+    return s, cam
+
 
 def count_pairs(surfels, camera) -> int:
-    """(surfel, pixel) pairs the native CPU tile loop evaluates (see the module docstring)."""
+    """(surfel, pixel) pairs a tile loop evaluates (see the module docstring)."""
     from splatzoo.rasterizers.common import project
 
     with torch.no_grad():
@@ -53,7 +70,7 @@ def count_pairs(surfels, camera) -> int:
 
 
 def _time(fn, repeats: int, sync) -> float:
-    fn()  # warm-up (and, for the native backend, the first-use build)
+    fn()  # warm-up (and, for a native backend, the first-use build)
     sync()
     times = []
     for _ in range(repeats):
@@ -64,76 +81,56 @@ def _time(fn, repeats: int, sync) -> float:
     return statistics.median(times) * 1e3
 
 
-def _time_kernel(C, s, cam, repeats, sync):
-    """The extension's own forward and backward (no PyTorch set-up around it): what the tile loop costs."""
-    from splatzoo.rasterizers.common import project
-
-    with torch.no_grad():
-        cam = cam.to(s.means.device, s.means.dtype)
-        p = project(s, cam)
-        vis = torch.nonzero(p.visible).squeeze(1)
-        order = vis[torch.sort(p.depth[vis], stable=True).indices]
-        args = [t[order].contiguous() for t in (p.T, p.center_px, p.depth, p.normal, s.opacities, s.base_color,
-                                                 s.wave_vectors, s.wave_phases, s.wave_amplitudes, p.boxes)]
-        out = C.forward(*args, cam.width, cam.height)
-        g = torch.Generator(device=s.means.device).manual_seed(0)
-        grads = [torch.randn(o.shape, generator=g, device=o.device, dtype=o.dtype) for o in out[:6]]
-        k_f = _time(lambda: C.forward(*args, cam.width, cam.height), repeats, sync)
-        k_b = _time(lambda: C.backward(*args, cam.width, cam.height, list(out), grads), repeats, sync)
-    return k_f, k_b
+def machine_info() -> dict:
+    return {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(), "torch": torch.__version__, "python": platform.python_version(),
+            "cuda_device": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
 
 
-def run_benchmark(backends=None, waves=(0, 4), configs=CONFIGS, repeats: int = 3, reference_repeats: int = 1,
+def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3, reference_repeats: int = 1,
                   json_path: str | os.PathLike | None = None, echo=print) -> dict:
-    """Run every (config, backend, K) and return {"machine": ..., "results": [...]}; optionally write JSON."""
-    from splatzoo.rasterizers import native, rasterize
+    """Run every (config, backend, waves) and return {"machine": ..., "results": [...]}; optionally write JSON."""
+    from splatzoo.rasterizers import BACKENDS, rasterize
 
     if backends is None:
-        backends = [b for b, ok in (("cuda", native.cuda_available()), ("cpu", native.cpu_available()),
-                                    ("reference", True)) if ok]
+        backends = [b for b in ("cuda", "cpu", "reference") if BACKENDS.get(b).available()]
     threads = torch.get_num_threads()
     results = []
-    header = (f"{'scene':<16}{'backend':<11}{'K':>2}{'fwd ms':>11}{'fwd+bwd ms':>12}{'pairs':>12}{'Mpairs/s/core':>15}"
-              f"{'op fwd':>10}{'op bwd':>10}{'op Mp/s/c':>12}")
+    header = f"{'scene':<22}{'backend':<11}{'K':>3}{'fwd ms':>11}{'fwd+bwd ms':>12}{'pairs':>14}{'Mpairs/s':>11}"
     echo(header)
     echo("-" * len(header))
-    for name, W, H, n, allowed in configs:
+    for name, kind, W, H, n, allowed in configs:
         for K in waves:
-            scene, cam = random_scene(n, W, H, K, seed=n + K)
+            scene, cam = make_scene(kind, n, W, H, K, seed=n + int(K.rstrip("a")))
             pairs = count_pairs(scene, cam)
             for backend in backends:
                 if backend not in allowed:
                     continue
-                device = "cuda" if backend == "cuda" else "cpu"
+                b = BACKENDS.get(backend)
+                device = b.torch_device()
                 s = scene.to(device).map(lambda t: t.detach().requires_grad_(True))
-                sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+                sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
                 reps = reference_repeats if backend == "reference" else repeats
-                fwd = lambda: rasterize(s, cam, backend=backend)  # noqa: E731
+
+                def fwd():
+                    with torch.no_grad():
+                        rasterize(s, cam, backend=b)
 
                 def fwd_bwd():
-                    out = rasterize(s, cam, backend=backend)
+                    out = rasterize(s, cam, backend=b)
                     loss = out.rgb.sum() + out.depth.sum() + out.normal.sum() + out.distortion.sum()
                     loss.backward()
 
                 t_f = _time(fwd, reps, sync)
                 t_fb = _time(fwd_bwd, reps, sync)
-                cores = threads if device == "cpu" else 1
-                row = {"scene": name, "width": W, "height": H, "surfels": n, "K": K, "backend": backend,
-                       "forward_ms": round(t_f, 2), "forward_backward_ms": round(t_fb, 2), "pairs": pairs,
-                       "pairs_per_s_per_core": pairs / (t_f / 1e3) / cores, "threads": cores}
-                kernel = ""
-                if backend in ("cpu", "cuda"):
-                    k_f, k_b = _time_kernel(native.load(backend), s, cam, reps, sync)
-                    row.update(kernel_forward_ms=round(k_f, 2), kernel_backward_ms=round(k_b, 2),
-                               kernel_pairs_per_s_per_core=pairs / (k_f / 1e3) / cores)
-                    kernel = f"{k_f:>10.1f}{k_b:>10.1f}{row['kernel_pairs_per_s_per_core'] / 1e6:>12.1f}"
+                cores = threads if device.type == "cpu" else 1
+                row = {"scene": name, "kind": kind, "width": W, "height": H, "surfels": n, "K": K,
+                       "backend": backend, "forward_ms": round(t_f, 3), "forward_backward_ms": round(t_fb, 3),
+                       "pairs": pairs, "pairs_per_s": pairs / (t_f / 1e3) / cores, "threads": cores}
                 results.append(row)
-                echo(f"{name:<16}{backend:<11}{K:>2}{t_f:>11.1f}{t_fb:>12.1f}{pairs:>12,}"
-                     f"{row['pairs_per_s_per_core'] / 1e6:>15.1f}{kernel}")
-    report = {"machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                          "torch_threads": threads, "torch": torch.__version__, "python": platform.python_version(),
-                          "cuda_device": torch.cuda.get_device_name() if torch.cuda.is_available() else None},
-              "date": time.strftime("%Y-%m-%d"), "results": results}
+                echo(f"{name:<22}{backend:<11}{K:>3}{t_f:>11.2f}{t_fb:>12.2f}{pairs:>14,}{row['pairs_per_s'] / 1e6:>11.1f}")
+                del s
+    report = {"machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M"), "results": results}
     _summary(results, echo)
     if json_path is not None:
         path = Path(json_path)
@@ -154,13 +151,16 @@ def _summary(results, echo):
 
     echo("")
     for scene in dict.fromkeys(r["scene"] for r in results):
-        for K in (0, 4):
-            a, b = get(scene, "reference", K, "forward_backward_ms"), get(scene, "cpu", K, "forward_backward_ms")
-            if a and b:
-                echo(f"{scene} K={K}: cpu fwd+bwd is {a / b:.0f}x faster than the reference")
-        k0, k4 = get(scene, "cpu", 0, "forward_backward_ms"), get(scene, "cpu", 4, "forward_backward_ms")
-        if k0 and k4:
-            echo(f"{scene}: cpu K=4 fwd+bwd / K=0 fwd+bwd = {k4 / k0:.2f}")
+        for native in ("cpu", "cuda"):
+            for K in ("0", "4"):
+                a, b = get(scene, "reference", K, "forward_backward_ms"), get(scene, native, K, "forward_backward_ms")
+                if a and b:
+                    echo(f"{scene} K={K}: {native} fwd+bwd is {a / b:.0f}x faster than the reference")
+            for key, what in (("forward_ms", "fwd"), ("forward_backward_ms", "fwd+bwd")):
+                k0, k4, k4a = (get(scene, native, K, key) for K in ("0", "4", "4a"))
+                if k0 and k4:
+                    extra = f", K=4a / K=0 = {k4a / k0:.2f}" if k4a else ""
+                    echo(f"{scene}: {native} {what} K=4 / K=0 = {k4 / k0:.2f}{extra}")
 
 
 def main(argv=None) -> int:
@@ -168,11 +168,15 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default="benchmarks/results/rasterizer.json", help="where to write the results")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--backends", default=None, help="comma-separated subset of cuda,cpu,reference")
-    ap.add_argument("--quick", action="store_true", help="only the 128x128/5k scene")
+    ap.add_argument("--waves", default=",".join(WAVES), help="comma-separated wave counts: 0, 4, 4a (adaptive)")
+    group = ap.add_mutually_exclusive_group()
+    group.add_argument("--quick", action="store_true", help="only the 128x128 scenes")
+    group.add_argument("--gpu", action="store_true", help="the 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)")
     args = ap.parse_args(argv)
     backends = args.backends.split(",") if args.backends else None
-    configs = CONFIGS[:1] if args.quick else CONFIGS
-    run_benchmark(backends=backends, configs=configs, repeats=args.repeats, json_path=args.json)
+    configs = CONFIGS[:2] if args.quick else GPU_CONFIGS if args.gpu else CONFIGS
+    run_benchmark(backends=backends, waves=tuple(args.waves.split(",")), configs=configs, repeats=args.repeats,
+                  json_path=args.json)
     return 0
 
 
