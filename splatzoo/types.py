@@ -179,7 +179,10 @@ class Surfels:
                 raise ShapeError(f"Surfels.{name} must have shape {want} (N={n}, K={k}), got {list(v.shape)}")
             if not v.is_floating_point() or v.dtype != dtype or v.device != device:
                 raise ShapeError(f"Surfels.{name} is {v.dtype} on {v.device}; every field must be {dtype} on {device}")
-            if not torch.isfinite(v).all():
+        # one device-to-host sync for every field (on a GPU each check would otherwise stall the queue)
+        finite = torch.stack([torch.isfinite(t[name]).all() for name in expected]).tolist()
+        for name, ok in zip(expected, finite):
+            if not ok:
                 raise ShapeError(f"Surfels.{name} contains NaN or Inf values; check the model parameters that produced it")
         c = self.wave_counts
         if c is not None:
@@ -189,9 +192,9 @@ class Surfels:
             if tuple(c.shape) != (n,) or c.device != device:
                 raise ShapeError(f"Surfels.wave_counts must have shape [N] (N={n}) on {device}, got {list(c.shape)} "
                                  f"on {c.device}")
-            if n and (int(c.min()) < 0 or int(c.max()) > k):
-                raise ShapeError(f"Surfels.wave_counts must lie in [0, K={k}], got values in [{int(c.min())}, "
-                                 f"{int(c.max())}]")
+            lo, hi = torch.stack([c.min(), c.max()]).tolist() if n else (0, 0)
+            if lo < 0 or hi > k:
+                raise ShapeError(f"Surfels.wave_counts must lie in [0, K={k}], got values in [{lo}, {hi}]")
         return self
 
 

@@ -76,12 +76,13 @@ sz::CameraArgs<S> camera_args(const Tensor& KR, const Tensor& Kt, const Tensor& 
     return c;
 }
 
-// The visible surfels' tensors (compacted, front to back) as the tile loops read them.
+// The surfels, their projection and the visible ones' depth order, as the tile loops read them.
 template <class S>
 sz::SurfelArgs<S> surfel_args(const sz::Settings& st, const TensorMap& c, int64_t W, int64_t H) {
     const Tensor& wv = need(c, "wave_vectors");
+    const Tensor& order = need(c, "order");
     auto wc = c.find("wave_counts");
-    return {st, int(wv.size(0)), int(wv.size(1)), int(W), int(H),
+    return {st, int(wv.size(0)), int(order.size(0)), int(wv.size(1)), int(W), int(H), order.data_ptr<int>(),
             need(c, "T").data_ptr<S>(), need(c, "centers").data_ptr<S>(), need(c, "center_depths").data_ptr<S>(),
             need(c, "normals").data_ptr<S>(), need(c, "opacities").data_ptr<S>(), need(c, "base_color").data_ptr<S>(),
             wv.data_ptr<S>(), need(c, "wave_phases").data_ptr<S>(), need(c, "wave_amplitudes").data_ptr<S>(),
@@ -158,30 +159,32 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& mea
             SZ_KERNELS(dev, project<scalar_t>, a, stream);
     });
 
-    // 2. the visible ones, front to back by centre depth, ties by index (the reference's order)
+    // 2. the visible ones, front to back by centre depth, ties by index (the reference's order); the per-surfel
+    // arrays stay in input order
     Tensor vis = at::nonzero(visible).squeeze(1);
     Tensor order = vis.index_select(0, std::get<1>(at::sort(depth.index_select(0, vis), true, 0, false)));
     const int64_t M = order.size(0);
-    auto take = [&](const Tensor& t) { return t.index_select(0, order).contiguous(); };
-    TensorMap state = {{"order", order}, {"T", take(T)}, {"centers", take(center)}, {"center_depths", take(depth)},
-                       {"normals", take(normal)}, {"opacities", take(op)}, {"base_color", take(base)},
-                       {"wave_vectors", take(wv)}, {"wave_phases", take(wp)}, {"wave_amplitudes", take(wa)},
-                       {"boxes", take(boxes)}};
+    TensorMap state = {{"order", order.to(at::kInt)}, {"T", T}, {"centers", center}, {"center_depths", depth},
+                       {"normals", normal}, {"opacities", op}, {"base_color", base.contiguous()},
+                       {"wave_vectors", wv.contiguous()}, {"wave_phases", wp.contiguous()},
+                       {"wave_amplitudes", wa.contiguous()}, {"boxes", boxes}};
     if (wave_counts.has_value() && wave_counts->defined()) {
         const Tensor& wc = *wave_counts;
         TORCH_CHECK(wc.dim() == 1 && wc.size(0) == N && !wc.is_floating_point() && wc.device() == means.device(),
                     "splatzoo render: wave_counts must be an integer tensor [", N, "] on ", means.device(), ", got ",
                     wc.scalar_type(), " ", wc.sizes(), " on ", wc.device());
-        if (N > 0)  // an out-of-range count would read past the surfel's row
-            TORCH_CHECK(wc.min().item<int64_t>() >= 0 && wc.max().item<int64_t>() <= K,
+        if (N > 0) {  // an out-of-range count would read past the surfel's row (one sync for both bounds)
+            const Tensor range = at::stack({wc.min(), wc.max()}).to(at::kCPU, at::kLong);
+            TORCH_CHECK(range[0].item<int64_t>() >= 0 && range[1].item<int64_t>() <= K,
                         "splatzoo render: wave_counts must lie in [0, K=", K, "]");
-        state["wave_counts"] = take(wc.to(at::kInt));
+        }
+        state["wave_counts"] = wc.to(at::kInt).contiguous();
     }
 
     // 3. pixel geometry, then (tile, surfel) pairs binned tile-major in depth order
     const int nt = sz::tiles_x(int(W)) * sz::tiles_y(int(H));
-    state["geom"] = at::empty({M, sz::GEOM}, f);
-    state["bounds"] = at::empty({M, 4}, i32);
+    state["geom"] = at::empty({N, sz::GEOM}, f);
+    state["bounds"] = at::empty({N, 4}, i32);
     state["tile_start"] = at::empty({nt + 1}, i32);
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_bin", [&] {
         const auto s = surfel_args<scalar_t>(st, state, W, H);
@@ -195,7 +198,7 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& mea
                         "resolution or with fewer or smaller surfels");
             state["tile_list"] = at::empty({P}, i32);
             state["pair_pos"] = at::empty({P}, i32);
-            sz::cpu_bin(int(M), int(W), int(H), bounds, state["surfel_off"].data_ptr<int64_t>(),
+            sz::cpu_bin(int(M), int(W), int(H), s.order, bounds, state["surfel_off"].data_ptr<int64_t>(),
                         state["tile_start"].data_ptr<int>(), state["tile_list"].data_ptr<int>(),
                         state["pair_pos"].data_ptr<int>());
         } else {  // one key per pair (tile << 32 | surfel), sorted
@@ -206,12 +209,12 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& mea
             TORCH_CHECK(P < INT_MAX, "splatzoo render: ", P, " (tile, surfel) pairs exceed 2^31; render at a lower "
                         "resolution or with fewer or smaller surfels");
             Tensor keys = at::empty({P}, f.dtype(at::kLong));
-            SZ_KERNELS(dev, emit_pairs, int(M), int(W), bounds, pair_end.data_ptr<int64_t>(), keys.data_ptr<int64_t>(),
-                       stream);
+            SZ_KERNELS(dev, emit_pairs, int(M), int(W), s.order, bounds, pair_end.data_ptr<int64_t>(),
+                       keys.data_ptr<int64_t>(), stream);
             keys = std::get<0>(at::sort(keys));
             state["tile_list"] = at::empty({P}, i32);
             if (P == 0) state["tile_start"].zero_();
-            SZ_KERNELS(dev, tile_starts, P, nt, keys.data_ptr<int64_t>(), state["tile_list"].data_ptr<int>(),
+            SZ_KERNELS(dev, tile_starts, P, nt, s.order, keys.data_ptr<int64_t>(), state["tile_list"].data_ptr<int>(),
                        state["tile_start"].data_ptr<int>(), stream);
         }
     });
@@ -247,8 +250,7 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
     void* stream = stream_for(dev);
     const int threads = at::get_num_threads();
     auto f = means.options();
-    const Tensor& order = need(state, "order");
-    const int64_t N = means.size(0), M = order.size(0), K = need(state, "wave_vectors").size(1);
+    const int64_t N = means.size(0), M = need(state, "order").size(0), K = need(state, "wave_vectors").size(1);
     TensorMap v_out;  // cotangents of the six outputs, contiguous, zeros where not given
     for (const char* name : OUTPUTS) {
         std::vector<int64_t> shape = {H, W};
@@ -260,11 +262,12 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
         TORCH_CHECK(v_out[name].sizes().vec() == shape, "splatzoo render_backward: cotangent of ", name,
                     " must have shape ", at::IntArrayRef(shape), ", got ", v_out[name].sizes());
     }
-    TensorMap v_c = {{"T", at::empty({M, 3, 3}, f)}, {"centers", at::empty({M, 2}, f)},
-                     {"center_depths", at::empty({M}, f)}, {"normals", at::empty({M, 3}, f)},
-                     {"opacities", at::empty({M}, f)}, {"base_color", at::empty({M, 3}, f)},
-                     {"wave_vectors", at::empty({M, K, 2}, f)}, {"wave_phases", at::empty({M, K}, f)},
-                     {"wave_amplitudes", at::empty({M, K, 3}, f)}};
+    // gradients of the per-surfel tensors, in input order; invisible surfels keep zero
+    TensorMap v_c = {{"T", at::zeros({N, 3, 3}, f)}, {"centers", at::zeros({N, 2}, f)},
+                     {"center_depths", at::zeros({N}, f)}, {"normals", at::zeros({N, 3}, f)},
+                     {"opacities", at::zeros({N}, f)}, {"base_color", at::zeros({N, 3}, f)},
+                     {"wave_vectors", at::zeros({N, K, 2}, f)}, {"wave_phases", at::zeros({N, K}, f)},
+                     {"wave_amplitudes", at::zeros({N, K, 3}, f)}};
     const int GW = sz::grad_width(int(K));
     if (M > 0) {
         AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_backward", [&] {
@@ -284,21 +287,14 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
                 sz::cpu_backward<S>(s, fr, g, need(state, "surfel_off").data_ptr<int64_t>(),
                                     need(state, "pair_pos").data_ptr<int>(), partials.data_ptr<S>(), threads);
             } else {
-                Tensor rows = at::zeros({M, GW}, f);
+                Tensor rows = at::zeros({N, GW}, f);
                 SZ_KERNELS(dev, backward<S>, s, fr, g, rows.data_ptr<S>(), stream);
             }
         });
-    } else {
-        for (auto& kv : v_c) kv.second.zero_();
     }
-    // back to all N surfels, then through the projection
-    auto scatter = [&](const Tensor& t) {
-        std::vector<int64_t> shape = t.sizes().vec();
-        shape[0] = N;
-        return at::zeros(shape, t.options()).index_copy_(0, order, t);
-    };
-    Tensor v_T = scatter(v_c["T"]), v_center = scatter(v_c["centers"]), v_depth = scatter(v_c["center_depths"]);
-    Tensor v_normal = scatter(v_c["normals"]);
+    // then through the projection
+    const Tensor &v_T = v_c["T"], &v_center = v_c["centers"], &v_depth = v_c["center_depths"];
+    const Tensor& v_normal = v_c["normals"];
     Tensor v_means = at::empty({N, 3}, f), v_quats = at::empty({N, 4}, f), v_scales = at::empty({N, 2}, f);
     Tensor m = means.contiguous(), q = quats.contiguous(), sc = scales.contiguous();
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_project_backward", [&] {
@@ -312,9 +308,9 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
         else
             SZ_KERNELS(dev, project_backward<S>, a, stream);
     });
-    return {{"means", v_means}, {"quats", v_quats}, {"scales", v_scales}, {"opacities", scatter(v_c["opacities"])},
-            {"base_color", scatter(v_c["base_color"])}, {"wave_vectors", scatter(v_c["wave_vectors"])},
-            {"wave_phases", scatter(v_c["wave_phases"])}, {"wave_amplitudes", scatter(v_c["wave_amplitudes"])}};
+    return {{"means", v_means}, {"quats", v_quats}, {"scales", v_scales}, {"opacities", v_c["opacities"]},
+            {"base_color", v_c["base_color"]}, {"wave_vectors", v_c["wave_vectors"]},
+            {"wave_phases", v_c["wave_phases"]}, {"wave_amplitudes", v_c["wave_amplitudes"]}};
 }
 
 }  // namespace

@@ -3,10 +3,11 @@
 // host emulation that runs them without a GPU, into sz::emu). Free of torch headers so the loops compile fast and
 // nvcc needs no torch.
 //
-// One pipeline on every device: project every surfel (project_surfel), compact the visible ones and sort them
-// front to back by centre depth (in ext.cpp), prepare their pixel geometry and count their tiles, bin (tile, surfel)
-// pairs tile-major in depth order, run the tile loop; the backward runs the tile loop back to front, sums each
-// surfel's slot row and maps it to input gradients (finalize_grads), then back through the projection.
+// One pipeline on every device: project every surfel (project_surfel), sort the visible ones front to back by
+// centre depth (`order`, in ext.cpp), prepare their pixel geometry and count their tiles, bin (tile, surfel) pairs
+// tile-major in depth order, run the tile loop; the backward runs the tile loop back to front, sums each surfel's
+// slot row and maps it to input gradients (finalize_grads), then back through the projection. Per-surfel arrays
+// stay in input order (no gathers): the order and the tile lists hold surfel indices.
 // Shapes: N surfels in, M visible, K waves, image H x W, P (tile, surfel) pairs.
 #pragma once
 
@@ -38,31 +39,32 @@ struct ProjectGradArgs {
     S *v_means, *v_quats, *v_scales;
 };
 
-// The visible surfels, compacted and sorted front to back (stable), so a tile's list in increasing surfel index is
-// its depth order.
+// The surfels with their projection, in input order; order[0..M) lists the visible ones front to back (stable in
+// the index), which is the order of every tile's list.
 template <class S>
 struct SurfelArgs {
     Settings st;
-    int M, K, W, H;
-    const S* T;       // [M,3,3] rows m1, m2, m3
-    const S* center;  // [M,2] projected centre (pixels)
-    const S* depth;   // [M] camera depth of the centre
-    const S* normal;  // [M,3] world normal facing the camera
-    const S* opac;    // [M]
-    const S* base;    // [M,3]
-    const S* wv;      // [M,K,2]
-    const S* wp;      // [M,K]
-    const S* wa;      // [M,K,3]
-    const S* boxes;   // [M,4] exact screen box (xmin, ymin, xmax, ymax)
-    // [M] waves in use per surfel (its first wcount[i] of K), or nullptr for all K. The tile loops run the wave
+    int N, M, K, W, H;
+    const int* order;  // [M] visible surfel indices, front to back
+    const S* T;        // [N,3,3] rows m1, m2, m3
+    const S* center;   // [N,2] projected centre (pixels)
+    const S* depth;    // [N] camera depth of the centre
+    const S* normal;   // [N,3] world normal facing the camera
+    const S* opac;     // [N]
+    const S* base;     // [N,3]
+    const S* wv;       // [N,K,2]
+    const S* wp;       // [N,K]
+    const S* wa;       // [N,K,3]
+    const S* boxes;    // [N,4] exact screen box (xmin, ymin, xmax, ymax)
+    // [N] waves in use per surfel (its first wcount[i] of K), or nullptr for all K. The tile loops run the wave
     // loops to k < wcount[i], so removed waves cost nothing; the row stride stays K.
     const int* wcount;
 };
 
 template <class S>
 struct FrameArgs {
-    S* geom;                // [M,GEOM] per-surfel pixel geometry (prepare_geom)
-    int* bounds;            // [M,4] pixel range x0, x1, y0, y1 (inclusive)
+    S* geom;                // [N,GEOM] per-surfel pixel geometry (prepare_geom; visible surfels only)
+    int* bounds;            // [N,4] pixel range x0, x1, y0, y1 (inclusive; visible surfels only)
     const int* tile_start;  // [tiles+1] tile t's surfels are tile_list[tile_start[t] .. tile_start[t+1])
     const int* tile_list;   // [P] surfel index per (tile, surfel) pair, tile-major, depth order within a tile
     // outputs [H,W(,3)]
@@ -78,7 +80,7 @@ template <class S>
 struct GradArgs {
     // cotangents of the outputs [H,W(,3)] (contiguous, zeros where an output was unused)
     const S *v_rgb, *v_alpha, *v_depth, *v_median, *v_normal, *v_dist;
-    // gradients of the per-surfel inputs, same shapes as in SurfelArgs
+    // gradients of the per-surfel inputs, same shapes as in SurfelArgs (written for visible surfels only)
     S *v_T, *v_center, *v_depth_c, *v_normal_c, *v_opac, *v_base, *v_wv, *v_wp, *v_wa;
 };
 
@@ -138,12 +140,12 @@ SZ_HD void finalize_surfel(const SurfelArgs<S>& s, const GradArgs<S>& g, int64_t
 template <class S> void cpu_project(const ProjectArgs<S>& a, int threads);
 template <class S> void cpu_project_backward(const ProjectGradArgs<S>& a, int threads);
 // Fills geom and bounds; returns the number of (tile, surfel) pairs and writes surfel_off [M+1] (CSR of pairs by
-// surfel, surfel-major order).
+// depth rank, rank-major order).
 template <class S> int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfel_off, int threads);
 // Counting sort of the pairs by tile (stable, so depth order is kept): tile_start [tiles+1], tile_list [P], and
 // pair_pos [P] (tile-list position of each pair in surfel-major order, to reduce gradients without atomics).
-void cpu_bin(int M, int W, int H, const int* bounds, const int64_t* surfel_off, int* tile_start, int* tile_list,
-             int* pair_pos);
+void cpu_bin(int M, int W, int H, const int* order, const int* bounds, const int64_t* surfel_off, int* tile_start,
+             int* tile_list, int* pair_pos);
 template <class S> void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads);
 // partials: scratch [P, grad_width(K)]; rows are summed per surfel in a fixed order (deterministic).
 template <class S>
@@ -155,14 +157,16 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
 #define SZ_GPU_ENTRY_POINTS                                                                                        \
     template <class S> void project(const ProjectArgs<S>& a, void* stream);                                        \
     template <class S> void project_backward(const ProjectGradArgs<S>& a, void* stream);                           \
-    /* geom, bounds and each surfel's tile count [M] */                                                            \
+    /* geom, bounds, and the tile count [M] of each visible surfel by depth rank */                                \
     template <class S> void prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int* tile_count, void* stream);  \
-    /* one key (tile << 32 | surfel) per pair, surfel-major; pair_end [M] = inclusive cumulative tile counts */      \
-    void emit_pairs(int M, int W, const int* bounds, const int64_t* pair_end, int64_t* keys, void* stream);        \
-    /* tile_start [tiles+1] from the sorted keys [P] */                                                            \
-    void tile_starts(int64_t P, int tiles, const int64_t* keys, int* tile_list, int* tile_start, void* stream);    \
+    /* one key (tile << 32 | depth rank) per pair; pair_end [M] = inclusive cumulative tile counts by rank */       \
+    void emit_pairs(int M, int W, const int* order, const int* bounds, const int64_t* pair_end, int64_t* keys,     \
+                    void* stream);                                                                                 \
+    /* tile_list [P] (surfel indices) and tile_start [tiles+1] from the sorted keys [P] */                         \
+    void tile_starts(int64_t P, int tiles, const int* order, const int64_t* keys, int* tile_list, int* tile_start, \
+                     void* stream);                                                                                \
     template <class S> void forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, void* stream);                  \
-    /* rows: zeroed scratch [M, grad_width(K)], summed into per warp (one atomic per slot per warp) */             \
+    /* rows: zeroed scratch [N, grad_width(K)], summed into per warp (one atomic per slot per warp) */             \
     template <class S>                                                                                             \
     void backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, S* rows, void* stream);
 

@@ -88,32 +88,34 @@ template <class S>
 int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfel_off, int threads) {
     const int M = s.M;
 #pragma omp parallel for num_threads(threads) schedule(static)
-    for (int i = 0; i < M; ++i) {
+    for (int r = 0; r < M; ++r) {
+        const int64_t i = s.order[r];
         prepare_geom(s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i],
                      *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
         box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     }
     surfel_off[0] = 0;
-    for (int i = 0; i < M; ++i) surfel_off[i + 1] = surfel_off[i] + tile_range(bounds + 4 * i).count();
+    for (int r = 0; r < M; ++r) surfel_off[r + 1] = surfel_off[r] + tile_range(bounds + 4 * int64_t(s.order[r])).count();
     return surfel_off[M];
 }
 
-void cpu_bin(int M, int W, int H, const int* bounds, const int64_t* surfel_off, int* tile_start, int* tile_list,
-             int* pair_pos) {
+void cpu_bin(int M, int W, int H, const int* order, const int* bounds, const int64_t* surfel_off, int* tile_start,
+             int* tile_list, int* pair_pos) {
     const int ntx = tiles_x(W), nt = ntx * tiles_y(H);
     std::vector<int> count(nt + 1, 0);
-    for (int i = 0; i < M; ++i) {
-        const TileRange r = tile_range(bounds + 4 * i);
+    for (int k = 0; k < M; ++k) {
+        const TileRange r = tile_range(bounds + 4 * int64_t(order[k]));
         for (int ty = r.y0; ty <= r.y1; ++ty)
             for (int tx = r.x0; tx <= r.x1; ++tx) ++count[ty * ntx + tx];
     }
     tile_start[0] = 0;
     for (int t = 0; t < nt; ++t) tile_start[t + 1] = tile_start[t] + count[t];
     std::vector<int> cursor(tile_start, tile_start + nt);
-    // surfels in increasing index = front to back, so every tile list comes out in depth order
-    for (int i = 0; i < M; ++i) {
-        const TileRange r = tile_range(bounds + 4 * i);
-        int64_t k = surfel_off[i];
+    // surfels by depth rank = front to back, so every tile list comes out in depth order
+    for (int rank = 0; rank < M; ++rank) {
+        const int i = order[rank];
+        const TileRange r = tile_range(bounds + 4 * int64_t(i));
+        int64_t k = surfel_off[rank];
         for (int ty = r.y0; ty <= r.y1; ++ty)
             for (int tx = r.x0; tx <= r.x1; ++tx) {
                 int pos = cursor[ty * ntx + tx]++;
@@ -239,16 +241,16 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                 }
             }
         }
-        // sum each surfel's pair rows (surfel-major CSR), then map the slots to input gradients
+        // sum each surfel's pair rows (CSR by depth rank), then map the slots to input gradients
         std::vector<double> sum(GW);
 #pragma omp for schedule(dynamic, 64)
-        for (int i = 0; i < M; ++i) {
+        for (int r = 0; r < M; ++r) {
             std::fill(sum.begin(), sum.end(), 0.0);
-            for (int64_t k = surfel_off[i]; k < surfel_off[i + 1]; ++k) {
+            for (int64_t k = surfel_off[r]; k < surfel_off[r + 1]; ++k) {
                 const S* row = partials + int64_t(pair_pos[k]) * GW;
                 for (int j = 0; j < GW; ++j) sum[j] += double(row[j]);
             }
-            finalize_surfel(s, g, i, sum.data());
+            finalize_surfel(s, g, s.order[r], sum.data());
         }
     }
 }

@@ -53,32 +53,37 @@ __global__ void project_backward_kernel(ProjectGradArgs<S> a) {
                      a.v_depth[i], a.v_normal + 3 * i, a.v_means + 3 * i, a.v_quats + 4 * i, a.v_scales + 2 * i);
 }
 
+// Thread r prepares the visible surfel of depth rank r.
 template <class S>
 __global__ void prepare_kernel(SurfelArgs<S> s, S* geom, int* bounds, int* tile_count) {
-    const int i = blockIdx.x * blockDim.x + threadIdx.x;
-    if (i >= s.M) return;
+    const int r = blockIdx.x * blockDim.x + threadIdx.x;
+    if (r >= s.M) return;
+    const int64_t i = s.order[r];
     prepare_geom(s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i], *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
     box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
-    tile_count[i] = int(tile_range(bounds + 4 * i).count());
+    tile_count[r] = int(tile_range(bounds + 4 * i).count());
 }
 
-// Surfel i writes its pairs at [pair_end[i-1], pair_end[i]): key = tile << 32 | i. Sorting the keys orders the pairs
-// by tile and, within a tile, by surfel index, which is depth order.
-__global__ void emit_pairs_kernel(int M, int W, const int* bounds, const int64_t* pair_end, int64_t* keys) {
-    const int i = blockIdx.x * blockDim.x + threadIdx.x;
-    if (i >= M) return;
-    const TileRange r = tile_range(bounds + 4 * i);
+// The surfel of depth rank r writes its pairs at [pair_end[r-1], pair_end[r]): key = tile << 32 | r. Sorting the
+// keys orders the pairs by tile and, within a tile, front to back.
+__global__ void emit_pairs_kernel(int M, int W, const int* order, const int* bounds, const int64_t* pair_end,
+                                  int64_t* keys) {
+    const int rank = blockIdx.x * blockDim.x + threadIdx.x;
+    if (rank >= M) return;
+    const TileRange r = tile_range(bounds + 4 * int64_t(order[rank]));
     const int ntx = (W + TILE - 1) / TILE;
-    int64_t k = i > 0 ? pair_end[i - 1] : 0;
+    int64_t k = rank > 0 ? pair_end[rank - 1] : 0;
     for (int ty = r.y0; ty <= r.y1; ++ty)
-        for (int tx = r.x0; tx <= r.x1; ++tx) keys[k++] = (int64_t(ty * ntx + tx) << 32) | int64_t(i);
+        for (int tx = r.x0; tx <= r.x1; ++tx) keys[k++] = (int64_t(ty * ntx + tx) << 32) | int64_t(rank);
 }
 
-// tile_list from the sorted keys, and tile_start: where each tile's run of keys begins (empty tiles included).
-__global__ void tile_starts_kernel(int64_t P, int tiles, const int64_t* keys, int* tile_list, int* tile_start) {
+// tile_list (surfel indices) from the sorted keys, and tile_start: where each tile's run of keys begins (empty
+// tiles included).
+__global__ void tile_starts_kernel(int64_t P, int tiles, const int* order, const int64_t* keys, int* tile_list,
+                                   int* tile_start) {
     const int64_t k = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
     if (k >= P) return;
-    tile_list[k] = int(keys[k] & 0xffffffff);
+    tile_list[k] = order[keys[k] & 0xffffffff];
     const int tile = int(keys[k] >> 32);
     const int prev = k > 0 ? int(keys[k - 1] >> 32) : -1;
     for (int t = prev + 1; t <= tile; ++t) tile_start[t] = int(k);
@@ -207,8 +212,9 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
 
 template <class S>
 __global__ void finalize_kernel(SurfelArgs<S> s, GradArgs<S> g, const S* rows) {
-    const int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
-    if (i >= s.M) return;
+    const int r = blockIdx.x * blockDim.x + threadIdx.x;
+    if (r >= s.M) return;
+    const int64_t i = s.order[r];
     finalize_surfel(s, g, i, rows + i * grad_width(s.K));
 }
 
@@ -236,16 +242,18 @@ void prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int* tile_count, void
     check(cudaGetLastError(), "prepare kernel launch");
 }
 
-void emit_pairs(int M, int W, const int* bounds, const int64_t* pair_end, int64_t* keys, void* stream) {
+void emit_pairs(int M, int W, const int* order, const int* bounds, const int64_t* pair_end, int64_t* keys,
+                void* stream) {
     if (M == 0) return;
-    SZ_LAUNCH(emit_pairs_kernel, blocks_for(M), PER_SURFEL, static_cast<cudaStream_t>(stream))(M, W, bounds, pair_end,
-                                                                                                keys);
+    SZ_LAUNCH(emit_pairs_kernel, blocks_for(M), PER_SURFEL, static_cast<cudaStream_t>(stream))(M, W, order, bounds,
+                                                                                                pair_end, keys);
     check(cudaGetLastError(), "emit pairs kernel launch");
 }
 
-void tile_starts(int64_t P, int tiles, const int64_t* keys, int* tile_list, int* tile_start, void* stream) {
+void tile_starts(int64_t P, int tiles, const int* order, const int64_t* keys, int* tile_list, int* tile_start,
+                 void* stream) {
     if (P == 0) return;
-    SZ_LAUNCH(tile_starts_kernel, blocks_for(P), PER_SURFEL, static_cast<cudaStream_t>(stream))(P, tiles, keys,
+    SZ_LAUNCH(tile_starts_kernel, blocks_for(P), PER_SURFEL, static_cast<cudaStream_t>(stream))(P, tiles, order, keys,
                                                                                                  tile_list, tile_start);
     check(cudaGetLastError(), "tile starts kernel launch");
 }

@@ -247,9 +247,12 @@ def render(surfels: Surfels, camera: Camera, background=None, settings: RasterSe
                                       f"move them with surfels.to('{want}') or pick another backend")
     if s.means.dtype not in (torch.float32, torch.float64):
         raise BackendUnavailableError(f"the native rasterizer supports float32 and float64, got {s.means.dtype}")
-    cam = camera.to(s.means.device, s.means.dtype)
-    call = _Call(C, settings_struct(C, settings or RasterSettings()), (cam.K @ cam.R).detach(),
-                 (cam.K @ cam.t).detach(), cam.center.detach(), cam.width, cam.height, s.wave_counts, emulated)
+    # camera products on the host in float64, rounded once to the surfels' dtype: the extension reads them on the
+    # host, so a camera on the GPU would cost a device-to-host copy (a sync) per tensor and pass
+    cam = camera.detach().to("cpu", torch.float64)
+    KR, Kt, eye = ((cam.K @ cam.R).to(s.means.dtype), (cam.K @ cam.t).to(s.means.dtype), cam.center.to(s.means.dtype))
+    call = _Call(C, settings_struct(C, settings or RasterSettings()), KR, Kt, eye, cam.width, cam.height,
+                 s.wave_counts, emulated)
     rgb, alpha, depth, median, normal, dist = _RenderFn.apply(call, *(getattr(s, k) for k in SURFEL_FIELDS))
     rgb = rgb + (1 - alpha)[..., None] * background_tensor(background, s.means)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist)
