@@ -157,7 +157,7 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
 }
 
 // Sums one gradient slot over the warp, then lane 0 adds it to the surfel's row: one atomic per slot per warp
-// instead of one per pixel. Lanes whose pair did not contribute take part with zero.
+// instead of one per pixel. Lanes whose pair did not contribute take part with zero. (Any wave count.)
 template <class S>
 struct WarpSum {
     S* row;
@@ -170,7 +170,43 @@ struct WarpSum {
     }
 };
 
+// Accumulates a pair's slots into a register row (compile-time slot indices: see for_each_wave).
 template <class S>
+struct RowAcc {
+    S* row;
+    bool valid;
+    __device__ __forceinline__ void operator()(int slot, S v) { row[slot] += valid ? v : S(0); }
+};
+
+// One halving step of a warp reduce-scatter: lanes with BIT set keep the upper HALF of their values, the others
+// the lower half, and each adds its partner's partial sums of the half it keeps.
+template <class S, int HALF, int BIT>
+__device__ __forceinline__ void reduce_scatter_step(S* v) {
+    const bool upper = (threadIdx.x & BIT) != 0;
+#pragma unroll
+    for (int i = 0; i < HALF; ++i) {
+        const S send = upper ? v[i] : v[i + HALF];
+        const S keep = upper ? v[i + HALF] : v[i];
+        v[i] = keep + __shfl_xor_sync(FULL_WARP, send, BIT);
+    }
+}
+
+// Sums N values (N a multiple of 32) over the warp in N - N/32 shuffles (a shuffle per value and level would take
+// 5N): afterwards lane l holds the sums of values [l N/32, (l + 1) N/32) in v[0 .. N/32).
+template <class S, int N>
+__device__ __forceinline__ void warp_reduce_scatter(S* v) {
+    static_assert(N % 32 == 0, "pad the row to a multiple of 32");
+    reduce_scatter_step<S, N / 2, 16>(v);
+    reduce_scatter_step<S, N / 4, 8>(v);
+    reduce_scatter_step<S, N / 8, 4>(v);
+    reduce_scatter_step<S, N / 16, 2>(v);
+    reduce_scatter_step<S, N / 32, 1>(v);
+}
+
+// KMAX >= 0 (every surfel has at most KMAX waves): each lane keeps the pair's slot row in registers and the warp
+// sums the rows with a reduce-scatter, then each lane adds its share of the slots with atomics. KMAX < 0: any wave
+// count, one warp sum and one atomic per slot (WarpSum).
+template <class S, int KMAX>
 __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameArgs<S> f, GradArgs<S> g, S* rows) {
     const Settings st = s.st;
     const auto [t, x, y, inside] = thread_pixel(s.W, s.H);
@@ -200,11 +236,26 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
             eval_pair(st, sh.g[j], px, py, e);  // rounds as in the forward: the same pairs contribute
             const bool valid = candidate && e.alpha != S(0);
             if (!__any_sync(FULL_WARP, valid)) continue;
-            const int i = sh.id[j];
+            const int64_t i = sh.id[j];
             const SurfelColour<S> sf = surfel_colour(s, i);
-            WarpSum<S> acc{rows + int64_t(i) * GW, valid};
+            S* surfel_row = rows + i * GW;
             PixelBwd<S> q = p;
-            blend_backward(st, q, sh.g[j], e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+            if constexpr (KMAX >= 0) {
+                constexpr int ROW = (grad_width(KMAX) + 31) / 32 * 32;
+                S row[ROW];
+#pragma unroll
+                for (int k = 0; k < ROW; ++k) row[k] = S(0);
+                RowAcc<S> acc{row, valid};
+                blend_backward<KMAX>(st, q, sh.g[j], e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+                warp_reduce_scatter<S, ROW>(row);
+                const int first = int(threadIdx.x & 31) * (ROW / 32);
+#pragma unroll
+                for (int k = 0; k < ROW / 32; ++k)
+                    if (first + k < GW && row[k] != S(0)) atomicAdd(surfel_row + first + k, row[k]);
+            } else {
+                WarpSum<S> acc{surfel_row, valid};
+                blend_backward(st, q, sh.g[j], e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+            }
             if (valid) p = q;
         }
     }
@@ -216,6 +267,13 @@ __global__ void finalize_kernel(SurfelArgs<S> s, GradArgs<S> g, const S* rows) {
     if (r >= s.M) return;
     const int64_t i = s.order[r];
     finalize_surfel(s, g, i, rows + i * grad_width(s.K));
+}
+
+template <class S, int KMAX>
+void launch_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, S* rows, int tiles,
+                     cudaStream_t stream) {
+    constexpr auto kernel = &backward_kernel<S, KMAX>;  // one name: a template-id's comma would split the macro
+    SZ_LAUNCH(kernel, tiles, BLOCK, stream)(s, f, g, rows);
 }
 
 }  // namespace
@@ -270,7 +328,13 @@ void backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& 
     if (s.M == 0) return;
     const int nt = tiles_x(s.W) * tiles_y(s.H);
     auto st = static_cast<cudaStream_t>(stream);
-    SZ_LAUNCH(backward_kernel<S>, nt, BLOCK, st)(s, f, g, rows);
+    // the register row for the common wave counts; any count through the per-slot warp sums
+    if (s.K == 0)
+        launch_backward<S, 0>(s, f, g, rows, nt, st);
+    else if (s.K <= 4)
+        launch_backward<S, 4>(s, f, g, rows, nt, st);
+    else
+        launch_backward<S, -1>(s, f, g, rows, nt, st);
     check(cudaGetLastError(), "backward kernel launch");
     SZ_LAUNCH(finalize_kernel<S>, blocks_for(s.M), PER_SURFEL, st)(s, g, rows);
     check(cudaGetLastError(), "finalize kernel launch");

@@ -59,7 +59,22 @@ enum : int {
     G_WAVES = 22,   // per wave: d k_x, d k_y, d phi, d a (3)
 };
 constexpr int G_PER_WAVE = 6;
-SZ_HD int grad_width(int K) { return G_WAVES + G_PER_WAVE * K; }
+SZ_HD constexpr int grad_width(int K) { return G_WAVES + G_PER_WAVE * K; }
+
+// Runs body(k) for the waves k < K. KMAX >= 0 promises K <= KMAX: the loop is unrolled with compile-time indices,
+// so per-wave arrays and gradient slots can live in registers (the CUDA backward's slot row).
+template <int KMAX, class F>
+SZ_HD void for_each_wave(int K, F&& body) {
+    if constexpr (KMAX < 0) {
+        for (int k = 0; k < K; ++k) body(k);
+    } else {
+#ifdef __CUDA_ARCH__
+#pragma unroll
+#endif
+        for (int k = 0; k < KMAX; ++k)
+            if (k < K) body(k);
+    }
+}
 
 // ---- small branch-free helpers (they must vectorise inside `omp simd` loops) ------------------------------------
 template <class S> SZ_HD S sabs(S x) { return x < S(0) ? -x : x; }
@@ -385,11 +400,11 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
 }
 
 // c(u, v) = max(0, c0 + sum_k a_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp.
-template <class S>
+template <int KMAX = -1, class S>
 SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int K, S u, S v, S col[3], S pre[3],
                       S* sn_out = nullptr, S* cs_out = nullptr) {
     S r = base[0], gg = base[1], b = base[2];
-    for (int k = 0; k < K; ++k) {
+    for_each_wave<KMAX>(K, [&](int k) {
         S sn, cs;
         sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
         if (sn_out) {  // kept for the backward, which needs both
@@ -399,7 +414,7 @@ SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int 
         r += cs * wa[3 * k];
         gg += cs * wa[3 * k + 1];
         b += cs * wa[3 * k + 2];
-    }
+    });
     pre[0] = r; pre[1] = gg; pre[2] = b;
     col[0] = smax(r, S(0)); col[1] = smax(gg, S(0)); col[2] = smax(b, S(0));
 }
@@ -533,7 +548,7 @@ SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>
 // One contribution, back to front. Contributions must be visited in reverse blending order, each exactly once.
 // e: the pair (alpha > 0 and pos < last); base..wa: this surfel's colour parameters; n its normal.
 // Calls acc for the same slots in the same order whatever the pair (see geom_backward).
-template <class S, class Acc>
+template <int KMAX = -1, class S, class Acc>
 SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n, const S* base,
                           const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc) {
     S a = e.alpha;
@@ -542,9 +557,10 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
     S w = a * Ti;
     S col[3], pre[3];
     // sin/cos of each wave phase, computed once for the colour and reused for its derivatives
-    S sn_cache[SINCOS_CACHE], cs_cache[SINCOS_CACHE];
-    const bool cached = K <= SINCOS_CACHE;
-    wave_color(base, wv, wp, wa, K, e.u, e.v, col, pre, cached ? sn_cache : nullptr, cached ? cs_cache : nullptr);
+    constexpr int CACHE = KMAX >= 0 ? (KMAX > 0 ? KMAX : 1) : SINCOS_CACHE;
+    S sn_cache[CACHE], cs_cache[CACHE];
+    const bool cached = KMAX >= 0 || K <= SINCOS_CACHE;
+    wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, cached ? sn_cache : nullptr, cached ? cs_cache : nullptr);
     S m = ndc_depth(st, e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
     S f = p.g_rgb[0] * col[0] + p.g_rgb[1] * col[1] + p.g_rgb[2] * col[2] + p.g_D * e.z +
@@ -566,7 +582,7 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
     acc(G_BASE + 1, gcol[1]);
     acc(G_BASE + 2, gcol[2]);
     S g_u = S(0), g_v = S(0);
-    for (int k = 0; k < K; ++k) {
+    for_each_wave<KMAX>(K, [&](int k) {
         S sn, cs;
         if (cached) {
             sn = sn_cache[k];
@@ -585,7 +601,7 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
         acc(o + 5, cs * gcol[2]);
         g_u += gt * wv[2 * k];
         g_v += gt * wv[2 * k + 1];
-    }
+    });
     // where the filter wins u = v = 0 are constants (reference: torch.where), so g_u, g_v are dropped there
     geom_backward(st, g, e, g_alpha, g_z, g_u, g_v, acc);
 }
