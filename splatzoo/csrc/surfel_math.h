@@ -282,37 +282,37 @@ SZ_HD void project_backward(const CameraArgs<S>& cam, const S* mean, const S* qu
         v_c[1] += v_center[1];
     }
     // x = KR y  =>  v_y = KR^T v_x
-    S g_a[3], g_b[3];
+    S v_su_tu[3], v_sv_tv[3];
     for (int j = 0; j < 3; ++j) {
         v_mean[j] = KR[j] * v_c[0] + KR[3 + j] * v_c[1] + KR[6 + j] * v_c[2];
-        g_a[j] = KR[j] * v_a[0] + KR[3 + j] * v_a[1] + KR[6 + j] * v_a[2];
-        g_b[j] = KR[j] * v_b[0] + KR[3 + j] * v_b[1] + KR[6 + j] * v_b[2];
+        v_su_tu[j] = KR[j] * v_a[0] + KR[3 + j] * v_a[1] + KR[6 + j] * v_a[2];
+        v_sv_tv[j] = KR[j] * v_b[0] + KR[3 + j] * v_b[1] + KR[6 + j] * v_b[2];
     }
-    v_scale[0] = g_a[0] * R[0] + g_a[1] * R[3] + g_a[2] * R[6];
-    v_scale[1] = g_b[0] * R[1] + g_b[1] * R[4] + g_b[2] * R[7];
+    v_scale[0] = v_su_tu[0] * R[0] + v_su_tu[1] * R[3] + v_su_tu[2] * R[6];
+    v_scale[1] = v_sv_tv[0] * R[1] + v_sv_tv[1] * R[4] + v_sv_tv[2] * R[7];
     const S facing = R[2] * (mean[0] - cam.eye[0]) + R[5] * (mean[1] - cam.eye[1]) + R[8] * (mean[2] - cam.eye[2]);
     const S flip = facing > S(0) ? S(-1) : S(1);
-    S vR[9];  // dL/dR, row-major: column 0 from a, column 1 from b, column 2 from the normal
+    S v_R[9];  // dL/dR, row-major: column 0 from a, column 1 from b, column 2 from the normal
     for (int i = 0; i < 3; ++i) {
-        vR[3 * i] = scale[0] * g_a[i];
-        vR[3 * i + 1] = scale[1] * g_b[i];
-        vR[3 * i + 2] = flip * v_normal[i];
+        v_R[3 * i] = scale[0] * v_su_tu[i];
+        v_R[3 * i + 1] = scale[1] * v_sv_tv[i];
+        v_R[3 * i + 2] = flip * v_normal[i];
     }
     const S w = qn[0], x = qn[1], y = qn[2], z = qn[3];
-    S vq[4];
-    vq[0] = S(2) * (-z * vR[1] + y * vR[2] + z * vR[3] - x * vR[5] - y * vR[6] + x * vR[7]);
-    vq[1] = S(2) * (y * vR[1] + z * vR[2] + y * vR[3] - S(2) * x * vR[4] - w * vR[5] + z * vR[6] + w * vR[7] -
-                    S(2) * x * vR[8]);
-    vq[2] = S(2) * (-S(2) * y * vR[0] + x * vR[1] + w * vR[2] + x * vR[3] + z * vR[5] - w * vR[6] + z * vR[7] -
-                    S(2) * y * vR[8]);
-    vq[3] = S(2) * (-S(2) * z * vR[0] - w * vR[1] + x * vR[2] + w * vR[3] - S(2) * z * vR[4] + y * vR[5] +
-                    x * vR[6] + y * vR[7]);
+    S v_q[4];
+    v_q[0] = S(2) * (-z * v_R[1] + y * v_R[2] + z * v_R[3] - x * v_R[5] - y * v_R[6] + x * v_R[7]);
+    v_q[1] = S(2) * (y * v_R[1] + z * v_R[2] + y * v_R[3] - S(2) * x * v_R[4] - w * v_R[5] + z * v_R[6] + w * v_R[7] -
+                    S(2) * x * v_R[8]);
+    v_q[2] = S(2) * (-S(2) * y * v_R[0] + x * v_R[1] + w * v_R[2] + x * v_R[3] + z * v_R[5] - w * v_R[6] + z * v_R[7] -
+                    S(2) * y * v_R[8]);
+    v_q[3] = S(2) * (-S(2) * z * v_R[0] - w * v_R[1] + x * v_R[2] + w * v_R[3] - S(2) * z * v_R[4] + y * v_R[5] +
+                    x * v_R[6] + y * v_R[7]);
     // q / max(|q|, eps): (I - qn qn^T) / |q| above eps, I / eps below (torch.clamp_min passes no gradient)
     if (qnorm > S(1e-12)) {
-        const S dot = vq[0] * w + vq[1] * x + vq[2] * y + vq[3] * z;
-        for (int i = 0; i < 4; ++i) v_quat[i] = (vq[i] - qn[i] * dot) / qnorm;
+        const S dot = v_q[0] * w + v_q[1] * x + v_q[2] * y + v_q[3] * z;
+        for (int i = 0; i < 4; ++i) v_quat[i] = (v_q[i] - qn[i] * dot) / qnorm;
     } else {
-        for (int i = 0; i < 4; ++i) v_quat[i] = vq[i] / S(1e-12);
+        for (int i = 0; i < 4; ++i) v_quat[i] = v_q[i] / S(1e-12);
     }
 }
 
@@ -485,32 +485,32 @@ SZ_HD void blend_forward(const Settings& st, PixelFwd<S>& p, S alpha, S z, const
 
 // ---- backward ---------------------------------------------------------------------------------------------------
 // Per-pixel state for the back-to-front pass. From the forward: T_final, the totals A = sum w, M1 = sum w m,
-// M2 = sum w m^2, last, med. From the cotangents: g_rgb, g_D (of sum w z), g_Tf (of T_final), g_n, g_dist, g_med.
+// M2 = sum w m^2, last, med. From the cotangents: v_rgb, v_D (of sum w z), v_Tf (of T_final), v_n, v_dist, v_med.
 template <class S>
 struct PixelBwd {
     S T;       // transmittance after the contribution being processed (starts at T_final)
     S suffix;  // sum over later contributions of w_j f_j
     S Tfinal, A, M1, M2;
-    S g_rgb[3], g_D, g_Tf, g_n[3], g_dist, g_med;
+    S v_rgb[3], v_D, v_Tf, v_n[3], v_dist, v_med;
     int last, med;
 };
 
 // Cotangents of the six outputs -> PixelBwd. depth = D / (1 - T_final) where 1 - T_final > 0, else 0.
 template <class S>
-SZ_HD void pixel_bwd_init(PixelBwd<S>& p, S Tfinal, const S* tot, int last, int med, S depth_out, const S* g_rgb,
-                          S g_alpha, S g_depth, S g_median, const S* g_normal, S g_dist) {
+SZ_HD void pixel_bwd_init(PixelBwd<S>& p, S Tfinal, const S* tot, int last, int med, S depth_out, const S* v_rgb,
+                          S v_alpha, S v_depth, S v_median, const S* v_normal, S v_dist) {
     p.T = Tfinal;
     p.suffix = S(0);
     p.Tfinal = Tfinal;
     p.A = tot[0]; p.M1 = tot[1]; p.M2 = tot[2];
     S acc = S(1) - Tfinal;
     bool pos = acc > S(0);
-    p.g_D = pos ? g_depth / acc : S(0);
-    S g_acc = g_alpha - (pos ? g_depth * depth_out / acc : S(0));
-    p.g_Tf = -g_acc;
-    for (int i = 0; i < 3; ++i) { p.g_rgb[i] = g_rgb[i]; p.g_n[i] = g_normal[i]; }
-    p.g_dist = g_dist;
-    p.g_med = g_median;
+    p.v_D = pos ? v_depth / acc : S(0);
+    S v_acc = v_alpha - (pos ? v_depth * depth_out / acc : S(0));
+    p.v_Tf = -v_acc;
+    for (int i = 0; i < 3; ++i) { p.v_rgb[i] = v_rgb[i]; p.v_n[i] = v_normal[i]; }
+    p.v_dist = v_dist;
+    p.v_med = v_median;
     p.last = last;
     p.med = med;
 }
@@ -519,30 +519,30 @@ SZ_HD void pixel_bwd_init(PixelBwd<S>& p, S Tfinal, const S* tot, int last, int 
 // Every slot is accumulated on every call (zero where it does not apply), in a fixed order, so a caller may sum
 // each slot across threads (the CUDA warp reduction) with every thread taking part.
 template <class S, class Acc>
-SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S g_alpha, S g_z, S g_u, S g_v,
+SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S v_alpha, S v_z, S v_u, S v_v,
                          Acc& acc) {
     const bool clamped = e.raw > S(st.alpha_max);  // torch.clamp passes the gradient only where input <= max
-    const S g_rho = clamped ? S(0) : S(-0.5) * g_alpha * e.raw;
-    acc(G_O, clamped ? S(0) : g_alpha * e.ex);
+    const S v_rho = clamped ? S(0) : S(-0.5) * v_alpha * e.raw;
+    acc(G_O, clamped ? S(0) : v_alpha * e.ex);
     // the ray-splat hit won (use3): rho = u^2 + v^2 at the hit, whose depth is m3 . (u, v, 1)
     const bool hit = e.use3;
-    g_u += S(2) * e.u * g_rho + g_z * g.m3[0];
-    g_v += S(2) * e.v * g_rho + g_z * g.m3[1];
-    acc(G_M3 + 0, hit ? g_z * e.u : S(0));
-    acc(G_M3 + 1, hit ? g_z * e.v : S(0));
-    acc(G_M3 + 2, hit ? g_z : S(0));
+    v_u += S(2) * e.u * v_rho + v_z * g.m3[0];
+    v_v += S(2) * e.v * v_rho + v_z * g.m3[1];
+    acc(G_M3 + 0, hit ? v_z * e.u : S(0));
+    acc(G_M3 + 1, hit ? v_z * e.v : S(0));
+    acc(G_M3 + 2, hit ? v_z : S(0));
     const S inv = S(1) / (hit ? e.c2 : S(1));
-    S gc[3] = {g_u * inv, g_v * inv, -(g_u * e.u + g_v * e.v) * inv};
-    for (int i = 0; i < 3; ++i) gc[i] = hit ? gc[i] : S(0);
+    S v_c[3] = {v_u * inv, v_v * inv, -(v_u * e.u + v_v * e.v) * inv};
+    for (int i = 0; i < 3; ++i) v_c[i] = hit ? v_c[i] : S(0);
     for (int i = 0; i < 3; ++i) {
-        acc(G_C + i, gc[i]);
-        acc(G_CX + i, e.dx * gc[i]);
-        acc(G_CY + i, e.dy * gc[i]);
+        acc(G_C + i, v_c[i]);
+        acc(G_CX + i, e.dx * v_c[i]);
+        acc(G_CY + i, e.dy * v_c[i]);
     }
     // otherwise the filter won: rho = F |d|^2 with d = pixel - centre, and the surfel is seen at its centre depth
-    acc(G_ZC, hit ? S(0) : g_z);
-    acc(G_CENTER + 0, hit ? S(0) : S(-2 * st.filter_inv_sq) * g_rho * e.dx);
-    acc(G_CENTER + 1, hit ? S(0) : S(-2 * st.filter_inv_sq) * g_rho * e.dy);
+    acc(G_ZC, hit ? S(0) : v_z);
+    acc(G_CENTER + 0, hit ? S(0) : S(-2 * st.filter_inv_sq) * v_rho * e.dx);
+    acc(G_CENTER + 1, hit ? S(0) : S(-2 * st.filter_inv_sq) * v_rho * e.dy);
 }
 
 // One contribution, back to front. Contributions must be visited in reverse blending order, each exactly once.
@@ -563,25 +563,25 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
     wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, cached ? sn_cache : nullptr, cached ? cs_cache : nullptr);
     S m = ndc_depth(st, e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
-    S f = p.g_rgb[0] * col[0] + p.g_rgb[1] * col[1] + p.g_rgb[2] * col[2] + p.g_D * e.z +
-          p.g_n[0] * n[0] + p.g_n[1] * n[1] + p.g_n[2] * n[2] +
-          p.g_dist * (m * m * p.A - S(2) * m * p.M1 + p.M2);
+    S f = p.v_rgb[0] * col[0] + p.v_rgb[1] * col[1] + p.v_rgb[2] * col[2] + p.v_D * e.z +
+          p.v_n[0] * n[0] + p.v_n[1] * n[1] + p.v_n[2] * n[2] +
+          p.v_dist * (m * m * p.A - S(2) * m * p.M1 + p.M2);
     // w_j (j > i) carries a factor (1 - alpha_i), and so does T_final
-    S g_alpha = Ti * f - (p.suffix + p.g_Tf * p.Tfinal) / oma;
+    S v_alpha = Ti * f - (p.suffix + p.v_Tf * p.Tfinal) / oma;
     p.suffix += w * f;
     p.T = Ti;
-    S g_z = w * p.g_D + p.g_dist * S(2) * w * (m * p.A - p.M1) * ndc_depth_grad(st, e.z);
-    if (pos == p.med) g_z += p.g_med;
-    acc(G_NORMAL + 0, w * p.g_n[0]);
-    acc(G_NORMAL + 1, w * p.g_n[1]);
-    acc(G_NORMAL + 2, w * p.g_n[2]);
+    S v_z = w * p.v_D + p.v_dist * S(2) * w * (m * p.A - p.M1) * ndc_depth_grad(st, e.z);
+    if (pos == p.med) v_z += p.v_med;
+    acc(G_NORMAL + 0, w * p.v_n[0]);
+    acc(G_NORMAL + 1, w * p.v_n[1]);
+    acc(G_NORMAL + 2, w * p.v_n[2]);
     // colour: the clamp at 0 passes the gradient where the value is >= 0 (torch.clamp)
-    S gcol[3];
-    for (int i = 0; i < 3; ++i) gcol[i] = pre[i] >= S(0) ? w * p.g_rgb[i] : S(0);
-    acc(G_BASE + 0, gcol[0]);
-    acc(G_BASE + 1, gcol[1]);
-    acc(G_BASE + 2, gcol[2]);
-    S g_u = S(0), g_v = S(0);
+    S v_col[3];
+    for (int i = 0; i < 3; ++i) v_col[i] = pre[i] >= S(0) ? w * p.v_rgb[i] : S(0);
+    acc(G_BASE + 0, v_col[0]);
+    acc(G_BASE + 1, v_col[1]);
+    acc(G_BASE + 2, v_col[2]);
+    S v_u = S(0), v_v = S(0);
     for_each_wave<KMAX>(K, [&](int k) {
         S sn, cs;
         if (cached) {
@@ -590,20 +590,20 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
         } else {
             sz_sincos(e.u * wv[2 * k] + e.v * wv[2 * k + 1] + wp[k], sn, cs);
         }
-        S ga = gcol[0] * wa[3 * k] + gcol[1] * wa[3 * k + 1] + gcol[2] * wa[3 * k + 2];
-        S gt = -sn * ga;  // d/d(phase)
+        S v_cos = v_col[0] * wa[3 * k] + v_col[1] * wa[3 * k + 1] + v_col[2] * wa[3 * k + 2];
+        S v_phase = -sn * v_cos;  // d/d(phase)
         int o = G_WAVES + G_PER_WAVE * k;
-        acc(o + 0, gt * e.u);
-        acc(o + 1, gt * e.v);
-        acc(o + 2, gt);
-        acc(o + 3, cs * gcol[0]);
-        acc(o + 4, cs * gcol[1]);
-        acc(o + 5, cs * gcol[2]);
-        g_u += gt * wv[2 * k];
-        g_v += gt * wv[2 * k + 1];
+        acc(o + 0, v_phase * e.u);
+        acc(o + 1, v_phase * e.v);
+        acc(o + 2, v_phase);
+        acc(o + 3, cs * v_col[0]);
+        acc(o + 4, cs * v_col[1]);
+        acc(o + 5, cs * v_col[2]);
+        v_u += v_phase * wv[2 * k];
+        v_v += v_phase * wv[2 * k + 1];
     });
-    // where the filter wins u = v = 0 are constants (reference: torch.where), so g_u, g_v are dropped there
-    geom_backward(st, g, e, g_alpha, g_z, g_u, g_v, acc);
+    // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
+    geom_backward(st, g, e, v_alpha, v_z, v_u, v_v, acc);
 }
 
 // A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
@@ -611,33 +611,33 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
 template <class S, class R>
 SZ_HD void finalize_grads(const S* T9, const S* center, const R* Gs, int K, S* v_T, S* v_center, S* v_depth,
                           S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp, S* v_wa) {
-    double m1[3], m2[3], m3[3], gA[3], gB[3], gC[3];
+    double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
     double cx = double(center[0]), cy = double(center[1]);
     for (int i = 0; i < 3; ++i) {
         m1[i] = double(T9[i]);
         m2[i] = double(T9[3 + i]);
         m3[i] = double(T9[6 + i]);
-        gC[i] = double(Gs[G_C + i]);
-        gA[i] = double(Gs[G_CX + i]) + cx * gC[i];
-        gB[i] = double(Gs[G_CY + i]) + cy * gC[i];
+        v_C[i] = double(Gs[G_C + i]);
+        v_A[i] = double(Gs[G_CX + i]) + cx * v_C[i];
+        v_B[i] = double(Gs[G_CY + i]) + cy * v_C[i];
     }
-    // d(a x b): g_a = b x g, g_b = g x a
+    // d(a x b): v_su_tu = b x g, v_sv_tv = g x a
     auto cross = [](const double* a, const double* b, double* out, double sign) {
         out[0] += sign * (a[1] * b[2] - a[2] * b[1]);
         out[1] += sign * (a[2] * b[0] - a[0] * b[2]);
         out[2] += sign * (a[0] * b[1] - a[1] * b[0]);
     };
-    double g1[3] = {0, 0, 0}, g2[3] = {0, 0, 0}, g3[3] = {0, 0, 0};
-    cross(m3, gA, g2, 1.0);  // A = m2 x m3
-    cross(gA, m2, g3, 1.0);
-    cross(m1, gB, g3, 1.0);  // B = m3 x m1
-    cross(gB, m3, g1, 1.0);
-    cross(m2, gC, g1, 1.0);  // C = m1 x m2
-    cross(gC, m1, g2, 1.0);
+    double v_m1[3] = {0, 0, 0}, v_m2[3] = {0, 0, 0}, v_m3[3] = {0, 0, 0};
+    cross(m3, v_A, v_m2, 1.0);  // A = m2 x m3
+    cross(v_A, m2, v_m3, 1.0);
+    cross(m1, v_B, v_m3, 1.0);  // B = m3 x m1
+    cross(v_B, m3, v_m1, 1.0);
+    cross(m2, v_C, v_m1, 1.0);  // C = m1 x m2
+    cross(v_C, m1, v_m2, 1.0);
     for (int i = 0; i < 3; ++i) {
-        v_T[i] = S(g1[i]);
-        v_T[3 + i] = S(g2[i]);
-        v_T[6 + i] = S(g3[i] + double(Gs[G_M3 + i]));
+        v_T[i] = S(v_m1[i]);
+        v_T[3 + i] = S(v_m2[i]);
+        v_T[6 + i] = S(v_m3[i] + double(Gs[G_M3 + i]));
         v_base[i] = S(Gs[G_BASE + i]);
         v_normal[i] = S(Gs[G_NORMAL + i]);
     }
