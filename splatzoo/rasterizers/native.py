@@ -39,29 +39,6 @@ _modules: dict[str, object] = {}
 _failures: dict[str, BackendUnavailableError] = {}
 
 
-def cpu_available() -> bool:
-    """True if the C++ extension builds (or is already built) and loads here."""
-    try:
-        load("cpu")
-        return True
-    except BackendUnavailableError:
-        return False
-
-
-def cuda_available() -> bool:
-    """True if the installed torch has CUDA, a GPU is visible, and the CUDA extension builds and loads.
-
-    Decided by torch (torch.version.cuda, torch.cuda.is_available()), not by whether nvcc happens to be installed.
-    """
-    if torch.version.cuda is None or not torch.cuda.is_available():
-        return False
-    try:
-        load("cuda")
-        return True
-    except BackendUnavailableError:
-        return False
-
-
 def _cpu_signature() -> str:
     """Identifies the instruction set we compile for (-march=native), so a shared cache never serves a binary
     built for another CPU."""
