@@ -470,3 +470,28 @@ def test_gpu_backend_fixture_skips_only_for_want_of_a_gpu():
     else:
         with pytest.raises(pytest.skip.Exception):
             backend_for_test("cuda")
+
+
+def test_a_first_build_announces_itself_and_a_cached_one_is_silent(monkeypatch, tmp_path, capsys):
+    from torch.utils import cpp_extension
+
+    monkeypatch.setenv("SPLATZOO_EXTENSIONS_DIR", str(tmp_path))
+    built = []
+
+    def fake_load(name, build_directory, **kw):
+        Path(build_directory, f"{name}.so").write_bytes(b"")  # what a finished build leaves
+        built.append(name)
+        return object()
+
+    monkeypatch.setattr(cpp_extension, "load", fake_load)
+    native._build("cpu")
+    err = capsys.readouterr().err
+    assert "building the C++ rasterizer" in err and "built the C++ rasterizer in" in err
+    native._build("cpu")  # cached: loads without a word
+    assert capsys.readouterr().err == "" and len(built) == 2
+
+
+def test_the_build_cache_is_keyed_by_the_compiler(monkeypatch):
+    a = native._build_name("cpu")
+    monkeypatch.setattr(native, "_compiler_id", lambda kind: "c++ (another compiler) 99.1")
+    assert native._build_name("cpu") != a

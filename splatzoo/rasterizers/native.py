@@ -11,11 +11,16 @@ import time. A failed build raises BackendUnavailableError saying what to instal
 """
 from __future__ import annotations
 
+import contextlib
+import functools
 import hashlib
 import os
 import platform
 import re
+import subprocess
+import sys
 import threading
+import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -75,8 +80,24 @@ def build_flags() -> list[str]:
     return ["-O3", "-fopenmp", "-fno-trapping-math"] + _march_flags()
 
 
+@functools.lru_cache(maxsize=None)
+def _compiler_id(kind: str) -> str:
+    """The compilers' version lines (C++, and nvcc for CUDA): part of the cache key, so that a compiler upgrade or
+    another checkout's toolchain never reuses or overwrites a build made with a different one."""
+    cmds = [[os.environ.get("CXX", "c++"), "--version"]] + ([["nvcc", "--version"]] if kind == "cuda" else [])
+    out = []
+    for cmd in cmds:
+        try:
+            text = subprocess.run(cmd, capture_output=True, text=True, timeout=30).stdout.strip().splitlines()
+            out.append(text[0] if cmd[0] != "nvcc" else text[-1])
+        except (OSError, subprocess.SubprocessError, IndexError):
+            out.append(f"{cmd[0]}: not found")
+    return "; ".join(out)
+
+
 def _build_name(kind: str) -> str:
     h = hashlib.sha1()
+    h.update(_compiler_id(kind).encode())
     for name in (CUDA_SOURCES if kind == "cuda" else CPU_SOURCES) + HEADERS:
         h.update((CSRC / name).read_bytes())
     h.update(" ".join(build_flags()).encode())
@@ -138,10 +159,13 @@ def _build(kind: str):
     if kind == "cuda":
         flags = flags + ["-DSPLATZOO_WITH_CUDA"]
         cuda_flags = cuda_flags + ["-DSPLATZOO_WITH_CUDA"]
+    fresh = not (build_dir / f"{name}.so").exists()
     try:
-        return cpp_extension.load(name=name, sources=sources, extra_cflags=flags, extra_cuda_cflags=cuda_flags,
-                                  extra_ldflags=["-fopenmp"], build_directory=str(build_dir),
-                                  with_cuda=(kind == "cuda"), verbose=os.environ.get("SPLATZOO_VERBOSE_BUILD") == "1")
+        with _announce_build(kind, build_dir, fresh):
+            return cpp_extension.load(name=name, sources=sources, extra_cflags=flags, extra_cuda_cflags=cuda_flags,
+                                      extra_ldflags=["-fopenmp"], build_directory=str(build_dir),
+                                      with_cuda=(kind == "cuda"),
+                                      verbose=os.environ.get("SPLATZOO_VERBOSE_BUILD") == "1")
     except Exception as e:  # compiler missing, compile error, or an import failure of the built module
         detail = str(e).strip().splitlines()
         detail = " | ".join(detail[-3:])[-600:] if detail else type(e).__name__
@@ -149,6 +173,34 @@ def _build(kind: str):
             f"could not build the native {kind} rasterizer in {build_dir}: {detail}. To fix: {_install_hint()}"
             + ("; and the CUDA toolkit (nvcc) matching torch.version.cuda" if kind == "cuda" else "")
             + ". Set SPLATZOO_VERBOSE_BUILD=1 to see the full build log.") from None
+
+
+@contextlib.contextmanager
+def _announce_build(kind: str, build_dir: Path, fresh: bool, every_s: float = 15.0):
+    """Say on stderr that a first build is running (it takes a minute or two, silently otherwise), with a line every
+    `every_s` seconds while it runs and the time it took."""
+    if not fresh:
+        yield
+        return
+    say = lambda msg: print(f"splatzoo: {msg}", file=sys.stderr, flush=True)  # noqa: E731
+    what = "C++ and CUDA" if kind == "cuda" else "C++"
+    say(f"building the {what} rasterizer, once for this version, compiler and torch (about a minute or two) in "
+        f"{build_dir}")
+    done = threading.Event()
+    t0 = time.monotonic()
+
+    def tick():
+        while not done.wait(every_s):
+            say(f"  still building ({time.monotonic() - t0:.0f} s)")
+
+    ticker = threading.Thread(target=tick, daemon=True)
+    ticker.start()
+    try:
+        yield
+        say(f"built the {what} rasterizer in {time.monotonic() - t0:.0f} s")
+    finally:
+        done.set()
+        ticker.join()
 
 
 @dataclass(frozen=True)
