@@ -128,7 +128,8 @@ void check_surfels(const Tensor& means, const Tensor& quats, const Tensor& scale
 // render(settings, means, quats, scales, opacities, base_color, wave_vectors, wave_phases, wave_amplitudes,
 //        wave_counts, KR, Kt, eye, width, height, emulated) -> (outputs, state), two dicts of tensors:
 // outputs: rgb [H,W,3], alpha, depth, median_depth [H,W], normal [H,W,3], distortion [H,W] (before the background);
-// state: what render_backward needs (the visible surfels' compacted tensors, the binning, per-pixel totals).
+// state: what render_backward needs (the projection, the depth order of the visible surfels, the binning, the
+// per-pixel totals), every per-surfel tensor in input order.
 std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& means, const Tensor& quats,
                                        const Tensor& scales, const Tensor& opac, const Tensor& base, const Tensor& wv,
                                        const Tensor& wp, const Tensor& wa, const std::optional<Tensor>& wave_counts,
@@ -201,7 +202,7 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& mea
             sz::cpu_bin(int(M), int(W), int(H), s.order, bounds, state["surfel_off"].data_ptr<int64_t>(),
                         state["tile_start"].data_ptr<int>(), state["tile_list"].data_ptr<int>(),
                         state["pair_pos"].data_ptr<int>());
-        } else {  // one key per pair (tile << 32 | surfel), sorted
+        } else {  // one key per pair (tile << 32 | depth rank), sorted
             Tensor count = at::empty({M}, i32);
             SZ_KERNELS(dev, prepare<scalar_t>, s, geom, bounds, count.data_ptr<int>(), stream);
             Tensor pair_end = at::cumsum(count, 0, at::kLong);

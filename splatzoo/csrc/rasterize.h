@@ -143,7 +143,7 @@ template <class S> void cpu_project_backward(const ProjectGradArgs<S>& a, int th
 // depth rank, rank-major order).
 template <class S> int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfel_off, int threads);
 // Counting sort of the pairs by tile (stable, so depth order is kept): tile_start [tiles+1], tile_list [P], and
-// pair_pos [P] (tile-list position of each pair in surfel-major order, to reduce gradients without atomics).
+// pair_pos [P] (tile-list position of each pair, in depth-rank-major order, to reduce gradients without atomics).
 void cpu_bin(int M, int W, int H, const int* order, const int* bounds, const int64_t* surfel_off, int* tile_start,
              int* tile_list, int* pair_pos);
 template <class S> void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads);
