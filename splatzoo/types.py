@@ -61,11 +61,15 @@ class Camera:
         return torch.linalg.inv(self.world_to_camera)
 
     def to(self, device=None, dtype=None) -> "Camera":
-        return replace(self, world_to_camera=self.world_to_camera.to(device=device, dtype=dtype),
-                       K=self.K.to(device=device, dtype=dtype))
+        w2c, K = self.world_to_camera.to(device=device, dtype=dtype), self.K.to(device=device, dtype=dtype)
+        if w2c is self.world_to_camera and K is self.K:
+            return self  # nothing moved: skip the copy and its validation (a render calls this per frame)
+        return replace(self, world_to_camera=w2c, K=K)
 
     def detach(self) -> "Camera":
         """The same camera with its tensors cut from any autograd graph (rasterizers take cameras as constants)."""
+        if not (self.world_to_camera.requires_grad or self.K.requires_grad):
+            return self
         return replace(self, world_to_camera=self.world_to_camera.detach(), K=self.K.detach())
 
     def scaled(self, factor: float) -> "Camera":
