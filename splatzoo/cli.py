@@ -33,8 +33,19 @@ def models_command(
             typer.echo(describe_options(entry.name))
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        typer.echo(f"splatzoo {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
     """splatzoo: surface splatting model zoo (2DGS, 3D Gabor splatting and plugins)."""
 
 
@@ -184,13 +195,12 @@ def eval_command(
     lpips_convention: str = typer.Option("3dgs", "--lpips-convention",
                                          help="3dgs ([0,1] inputs, as the paper's tables) or standard ([-1,1])"),
 ) -> None:
-    """Evaluate a trained run on its test views; writes and prints metrics.json."""
-    import json
-
-    from .evaluate import evaluate_run
+    """Evaluate a trained run on its test views; prints a table and writes RUN/metrics.json."""
+    from .evaluate import evaluate_run, metrics_table
 
     metrics = evaluate_run(run, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention)
-    typer.echo(json.dumps(metrics, indent=2))
+    typer.echo(metrics_table(metrics))
+    typer.echo(f"wrote {Path(run) / 'metrics.json'}")
 
 
 @app.command("render")
@@ -234,6 +244,7 @@ def compare_command(
             seed=seed, backend=backend, synthetic_scene=scene,
             scene_options=_scene_options(resolution, max_width, test_every, white_background))
     typer.echo((out / "report.md").read_text())
+    typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")
 
 
 @app.command("sweep", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -266,6 +277,7 @@ def sweep_command(
           quick=quick, seed=seed, backend=backend, synthetic_scene=scene, model_options=options,
           scene_options=_scene_options(resolution, max_width, test_every, white_background))
     typer.echo((out / "report.md").read_text())
+    typer.echo(f"wrote {out}: sweep.json, report.md, pareto.png")
 
 
 # --- mesh extraction and export (extract-mesh, export) -----------------------------------------------------

@@ -82,6 +82,24 @@ def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None
     }
 
 
+def metrics_table(m: dict) -> str:
+    """A metrics.json record as a short aligned table for a terminal (the JSON file keeps every field)."""
+    def num(key, fmt):
+        v = m.get(key)
+        return "-" if v is None else format(v, fmt)
+
+    res = m.get("resolution")
+    rows = [("model", f"{m.get('model', '-')} ({m.get('num_primitives', '-')} primitives, "
+                      f"{(m.get('size_bytes') or 0) / 1e6:.2f} MB)"),
+            ("views", f"{m.get('views', '-')} {m.get('split', '')} views" + (f" at {res[0]}x{res[1]}" if res else "")),
+            ("PSNR", f"{num('psnr', '.2f')} dB"), ("SSIM", num("ssim", ".4f")),
+            ("LPIPS", f"{num('lpips', '.4f')} ({m.get('conventions', {}).get('lpips', '')})"),
+            ("render", f"{num('fps', '.1f')} FPS ({m.get('backend', '-')} backend)"),
+            ("training", f"{num('train_seconds', '.0f')} s, {m.get('iterations', '-')} iterations")]
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+
+
 def to_uint8(img: torch.Tensor) -> np.ndarray:
     return (img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
 

@@ -34,3 +34,23 @@ def test_models_lists_builtins():
 def test_console_script_reports_errors_without_traceback(tmp_path):
     out = subprocess.run([sys.executable, "-m", "splatzoo.cli", "nonexistent-command"], capture_output=True, text=True)
     assert out.returncode != 0 and "Traceback" not in out.stderr
+
+
+def test_version():
+    import splatzoo
+
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output.strip() == f"splatzoo {splatzoo.__version__}"
+
+
+def test_metrics_table_is_readable():
+    from splatzoo.evaluate import metrics_table
+
+    text = metrics_table({"psnr": 24.7, "ssim": 0.8667, "lpips": 0.1195, "fps": 120.3, "train_seconds": 55.2,
+                          "num_primitives": 2000, "size_bytes": 224000, "iterations": 1500, "model": "gabor",
+                          "backend": "cpu", "split": "test", "views": 3, "resolution": [128, 128]})
+    lines = text.splitlines()
+    assert lines[0].split() == ["model", "gabor", "(2000", "primitives,", "0.22", "MB)"]
+    assert "PSNR      24.70 dB" in text and "SSIM      0.8667" in text and "120.3 FPS (cpu backend)" in text
+    assert "{" not in text  # a table, not JSON
+    assert "PSNR      - dB" in metrics_table({})  # missing fields do not break it

@@ -17,6 +17,7 @@ def test_sweep_cli_on_a_tiny_scene(tmp_path):
     r = CliRunner().invoke(app, ["sweep", str(data), "--model", "gabor", "--n-waves", "0,2", "--num-primitives",
                                  "40,80", "--iterations", "10", "--out", str(out), "--prune-waves", "0.001"])
     assert r.exit_code == 0, r.output + repr(r.exception)
+    assert f"wrote {out}" in r.output
     for name in ("sweep.json", "pareto.png", "report.md"):
         assert (out / name).stat().st_size > 0, name
     result = json.loads((out / "sweep.json").read_text())

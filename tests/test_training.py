@@ -94,6 +94,7 @@ def test_cli_train_eval_render_compare(tiny_data, tmp_path):
     assert cfg["model_config"]["n_waves"] == 2
     r = runner.invoke(app, ["eval", str(run), "--lpips-net", "alex"])
     assert r.exit_code == 0, r.output
+    assert "PSNR" in r.output and "metrics.json" in r.output and '"psnr"' not in r.output
     metrics = json.loads((run / "metrics.json").read_text())
     assert "alex" in metrics["conventions"]["lpips"] and metrics["num_primitives"] == 200
     r = runner.invoke(app, ["render", str(run), "--split", "train", "--video", "--frames", "8"])
@@ -106,6 +107,7 @@ def test_cli_train_eval_render_compare(tiny_data, tmp_path):
     r = runner.invoke(app, ["compare", "gabor", "2dgs", "--data", str(tiny_data), "--out", str(out),
                             "--iterations", "20", "--num-primitives", "200"])
     assert r.exit_code == 0, r.output
+    assert f"wrote {out}" in r.output
     report = json.loads((out / "compare.json").read_text())
     assert set(report["runs"]) == {"gabor", "2dgs"} and report["settings"]["num_primitives"] == 200
     for m in report["runs"].values():
