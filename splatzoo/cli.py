@@ -12,7 +12,8 @@ import typer
 
 from .errors import SplatzooError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+# plain help (rich_markup_mode=None): this typer's rich panels print every flag as `--flag <bool>`
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, rich_markup_mode=None,
                   help="splatzoo: surface splatting model zoo (2DGS, 3D Gabor splatting and plugins).")
 
 
@@ -53,7 +54,7 @@ def _root(
 # (data commands go here)
 @app.command("sfm")
 def sfm_command(
-    images_dir: Path = typer.Argument(..., help="Folder of photos (png/jpg) of one static subject."),
+    images_dir: Path = typer.Argument(..., metavar="IMAGES", help="Folder of photos (png/jpg) of one static subject."),
     out: Path = typer.Option(..., "--out", "-o", help="Dataset folder to create (images/, sparse/0/)."),
     camera_model: str = typer.Option("SIMPLE_RADIAL", help="COLMAP camera model to estimate; non-pinhole "
                                       "models are undistorted automatically when the dataset is loaded."),
@@ -72,7 +73,7 @@ def sfm_command(
 
 @app.command("synth")
 def synth_command(
-    name: Optional[str] = typer.Argument(None, help="Scene name (see --list)."),
+    name: Optional[str] = typer.Argument(None, metavar="SCENE", help="Scene name (see --list)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset folder to create."),
     views: int = typer.Option(48, help="Number of views."),
     width: int = typer.Option(256, help="Image width in pixels."),
@@ -147,7 +148,7 @@ _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, refer
 @app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 def train_command(
     ctx: typer.Context,
-    data: Path = typer.Argument(..., help="COLMAP folder (images/ + sparse/0/) or Blender folder (transforms_*.json)"),
+    data: Path = typer.Argument(..., metavar="DATA", help="COLMAP folder (images/ + sparse/0/) or Blender folder (transforms_*.json)"),
     model: str = typer.Option("gabor", "--model", "-m", help="model name (see `splatzoo models -v` for options)"),
     iterations: int = typer.Option(30000, "--iterations", "-i", help="training iterations; the schedule scales with it"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="run directory (default runs/<model>)"),
@@ -189,7 +190,7 @@ def train_command(
 
 @app.command("eval")
 def eval_command(
-    run: Path = typer.Argument(..., help="run directory written by `splatzoo train`"),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`"),
     backend: str = _BACKEND,
     lpips_net: str = typer.Option("vgg", "--lpips-net", help="vgg or alex"),
     lpips_convention: str = typer.Option("3dgs", "--lpips-convention",
@@ -205,7 +206,7 @@ def eval_command(
 
 @app.command("render")
 def render_command(
-    run: Path = typer.Argument(..., help="run directory written by `splatzoo train`"),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`"),
     split: str = typer.Option("test", "--split", help="test or train views"),
     video: bool = typer.Option(False, "--video", help="also write an orbit video (renders/orbit.mp4)"),
     frames: int = typer.Option(60, "--frames", help="frames of the orbit video"),
@@ -220,7 +221,7 @@ def render_command(
 
 @app.command("compare")
 def compare_command(
-    models: list[str] = typer.Argument(..., help="models to compare, e.g. gabor 2dgs (options: gabor:n_waves=8)"),
+    models: list[str] = typer.Argument(..., metavar="MODEL", help="models to compare, e.g. gabor 2dgs (options: gabor:n_waves=8)"),
     data: Optional[Path] = typer.Option(None, "--data", "-d", help="dataset (default: a built-in synthetic scene)"),
     scene: str = typer.Option("sweater", "--scene", help="built-in synthetic scene when --data is not given"),
     out: Path = typer.Option(Path("runs/compare"), "--out", "-o", help="output folder"),
@@ -250,7 +251,7 @@ def compare_command(
 @app.command("sweep", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 def sweep_command(
     ctx: typer.Context,
-    data: Optional[Path] = typer.Argument(None, help="dataset (default: a built-in synthetic scene, see --scene)"),
+    data: Optional[Path] = typer.Argument(None, metavar="DATA", help="dataset (default: a built-in synthetic scene, see --scene)"),
     model: str = typer.Option("gabor", "--model", "-m", help="wave model swept over --n-waves (0 = the 2dgs model)"),
     n_waves: str = typer.Option("0,1,2,4,8", "--n-waves", help="comma-separated wave counts"),
     num_primitives: str = typer.Option("1000,2000,4000", "--num-primitives", "-n",
@@ -284,7 +285,7 @@ def sweep_command(
 # (mesh commands go here)
 @app.command("extract-mesh")
 def extract_mesh_command(
-    run: Path = typer.Argument(..., help="run directory written by `splatzoo train`"),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="mesh file to write (default RUN/mesh.ply)"),
     voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="TSDF voxel size in world units "
                                                "(default: max(depth_trunc/1024, one pixel at the object))"),
@@ -306,7 +307,7 @@ def extract_mesh_command(
 
 @app.command("export")
 def export_command(
-    run: Path = typer.Argument(..., help="run directory written by `splatzoo train` (or a model .pt file)"),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train` (or a model .pt file)"),
     out: Path = typer.Option(..., "--out", "-o", help="PLY file to write"),
 ) -> None:
     """Export a trained model as a binary PLY that 3DGS/2DGS tools read (Gabor waves as extra properties)."""

@@ -54,3 +54,11 @@ def test_metrics_table_is_readable():
     assert "PSNR      24.70 dB" in text and "SSIM      0.8667" in text and "120.3 FPS (cpu backend)" in text
     assert "{" not in text  # a table, not JSON
     assert "PSNR      - dB" in metrics_table({})  # missing fields do not break it
+
+
+@pytest.mark.parametrize("command", ["train", "synth", "compare"])
+def test_help_shows_flags_as_flags_and_arguments_by_name(command):
+    out = runner.invoke(app, [command, "--help"]).output
+    assert "<bool>" not in out, out
+    usage = out.splitlines()[0]
+    assert usage == usage.replace("{data}", "").replace("{models}", ""), usage  # upper-case metavars: DATA, MODEL
