@@ -62,3 +62,19 @@ def test_help_shows_flags_as_flags_and_arguments_by_name(command):
     assert "<bool>" not in out, out
     usage = out.splitlines()[0]
     assert usage == usage.replace("{data}", "").replace("{models}", ""), usage  # upper-case metavars: DATA, MODEL
+
+
+def test_readme_python_snippet_runs_as_written(tmp_path, monkeypatch):
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
+    assert blocks, "README.md has no python snippet"
+    monkeypatch.chdir(tmp_path)  # the snippet writes model.pt
+    for code in blocks:
+        scope: dict = {}
+        exec(compile(code, "README.md", "exec"), scope)
+    out = scope["out"]
+    assert out.alpha.max() > 0.5 and out.rgb.max() > 0  # it rendered something: the sphere covers the view centre
+    assert (tmp_path / "model.pt").is_file()
