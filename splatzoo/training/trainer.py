@@ -1,4 +1,5 @@
-"""The training loop: any registered model on any Scene, with the 2DGS recipe (REFERENCE.md section 1).
+"""The training loop: any registered model on any Scene, with the 2DGS recipe (losses, learning rates and
+densification schedule of the official 2DGS code; see TrainConfig).
 
 A run directory holds config.json (fully resolved), checkpoint.pt (latest, written atomically), model.pt
 (final), train_log.jsonl and, after evaluation, metrics.json and renders/.
