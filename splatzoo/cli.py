@@ -208,7 +208,7 @@ def eval_command(
 def render_command(
     run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`"),
     split: str = typer.Option("test", "--split", help="test or train views"),
-    video: bool = typer.Option(False, "--video", help="also write an orbit video (renders/orbit.mp4)"),
+    video: bool = typer.Option(False, "--video", help="also write an orbit video (renders/orbit.webm, VP9: plays in browsers)"),
     frames: int = typer.Option(60, "--frames", help="frames of the orbit video"),
     backend: str = _BACKEND,
 ) -> None:

@@ -198,13 +198,27 @@ def render_run(run_dir, *, split: str = "test", video: bool = False, backend: st
 
         backend = resolve_backend(backend, _device(model))
         cams = orbit_cameras([v.camera for v in scene.train], frames)
-        path = run_dir / "renders" / "orbit.mp4"
-        with atomic_path(path, suffix=".mp4") as tmp:
-            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), 30, (cams[0].width, cams[0].height))
-            if not writer.isOpened():
-                raise SplatzooError("OpenCV cannot write mp4 here (no mp4v encoder); render PNGs without --video")
-            for c in cams:
-                writer.write(np.ascontiguousarray(to_uint8(render_view(model, c, scene.background, backend))[..., ::-1]))
-            writer.release()
+        size = (cams[0].width, cams[0].height)
+        # WebM (VP9, else VP8) plays in every current browser; OpenCV's wheels carry no H.264 encoder, and their
+        # mp4 (mp4v) plays in video players only, so it is the last resort
+        class NoEncoder(Exception):
+            pass
+
+        for name, fourcc in (("orbit.webm", "VP90"), ("orbit.webm", "VP80"), ("orbit.mp4", "mp4v")):
+            path = run_dir / "renders" / name
+            try:
+                with atomic_path(path, suffix=path.suffix) as tmp:  # an exception inside leaves no file behind
+                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), 30, size)
+                    if not writer.isOpened():
+                        raise NoEncoder
+                    for c in cams:
+                        writer.write(np.ascontiguousarray(to_uint8(render_view(model, c, scene.background,
+                                                                               backend))[..., ::-1]))
+                    writer.release()
+                break
+            except NoEncoder:
+                continue
+        else:
+            raise SplatzooError("OpenCV can write no video format here (VP9, VP8 or mp4v); render PNGs without --video")
         paths.append(path)
     return paths
