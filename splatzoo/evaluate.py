@@ -125,8 +125,9 @@ def save_test_renders(model, scene, out_dir, *, backend: str = "auto", split: st
     return paths
 
 
-def load_run(run_dir):
-    """(model, scene, config record) of a run directory, with a clear error if it is incomplete."""
+def load_run(run_dir, backend: str | None = None):
+    """(model, scene, config record) of a run directory, with a clear error if it is incomplete. With a backend
+    name ("auto" too), the model is placed on the device that backend renders on."""
     from .data import load_scene
     from .zoo import load_model
 
@@ -139,14 +140,16 @@ def load_run(run_dir):
         raise SplatzooError(f"{run_dir} has no trained model (model.pt){hint}")
     record = json.loads(cfg_path.read_text())
     scene = load_scene(record["data"], **record.get("scene_options", {}))
-    return load_model(model_path), scene, record
+    model = load_model(model_path)
+    if backend is not None:
+        model = model.to(select_backend(backend).torch_device())
+    return model, scene, record
 
 
 def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str = LPIPS_NET,
                  lpips_convention: str = LPIPS_CONVENTION) -> dict:
     run_dir = Path(run_dir)
-    model, scene, record = load_run(run_dir)
-    model = model.to(select_backend(backend).torch_device())
+    model, scene, record = load_run(run_dir, backend)
     old = json.loads((run_dir / "metrics.json").read_text()) if (run_dir / "metrics.json").exists() else {}
     metrics = evaluate(model, scene, backend=backend, train_seconds=old.get("train_seconds"),
                        iterations=record["train"]["iterations"], lpips_net=lpips_net, lpips_convention=lpips_convention)
@@ -186,10 +189,9 @@ def orbit_cameras(cameras: list[Camera], frames: int = 60) -> list[Camera]:
 
 
 def render_run(run_dir, *, split: str = "test", video: bool = False, backend: str = "auto", frames: int = 60) -> list[Path]:
-    """Write the split's renders as PNG (and an orbit video as mp4); returns the written paths."""
+    """Write the split's renders as PNG (and an orbit video, WebM); returns the written paths."""
     run_dir = Path(run_dir)
-    model, scene, _ = load_run(run_dir)
-    model = model.to(select_backend(backend).torch_device())
+    model, scene, _ = load_run(run_dir, backend)
     if split not in ("test", "train"):
         raise SplatzooError(f"unknown split {split!r}; use test or train")
     paths = save_test_renders(model, scene, run_dir / "renders", backend=backend, split=split)

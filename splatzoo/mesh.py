@@ -274,10 +274,7 @@ def extract_mesh_from_run(run_dir, out=None, *, backend: str = "auto", progress=
     if not run_dir.is_dir():
         raise SplatzooError(f"run directory {run_dir} does not exist; pass the --out folder of `splatzoo train`")
     out = Path(out) if out is not None else run_dir / "mesh.ply"
-    model, scene, _ = load_run(run_dir)
-    from .rasterizers import select_backend
-
-    model = model.to(select_backend(backend).torch_device())
+    model, scene, _ = load_run(run_dir, backend)
     mesh, _, _ = extract_mesh(model, [v.camera for v in scene.train], backend=backend, progress=progress, **options)
     write_mesh(mesh, out)
     _say(progress)(f"wrote {out}")
