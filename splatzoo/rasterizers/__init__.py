@@ -63,18 +63,13 @@ def register_backend(backend: Backend) -> Backend:
     return BACKENDS.register(backend.name, backend)
 
 
-def _check_cuda() -> None:
-    from . import native
+def _check_native(build: str):
+    def check() -> None:  # native.load says why: no CUDA in torch, no GPU, no compiler, a build error
+        from . import native
 
-    if torch.version.cuda is None or not torch.cuda.is_available():
-        raise BackendUnavailableError("no CUDA device: the installed torch has no CUDA support or sees no GPU")
-    native.load("cuda")
+        native.load(build)
 
-
-def _check_cpu() -> None:
-    from . import native
-
-    native.load("cpu")
+    return check
 
 
 def _render_native(build: str, emulated: bool = False):
@@ -92,13 +87,14 @@ def _render_reference(surfels, camera, background, settings):
     return rasterize_reference(surfels, camera, background, settings)
 
 
-register_backend(Backend("cuda", "cuda", "CUDA tile rasterizer", _check_cuda, _render_native("cuda"), auto_rank=0))
-register_backend(Backend("cpu", "cpu", "C++ (OpenMP) tile rasterizer", _check_cpu, _render_native("cpu"),
+register_backend(Backend("cuda", "cuda", "CUDA tile rasterizer", _check_native("cuda"), _render_native("cuda"),
+                         auto_rank=0))
+register_backend(Backend("cpu", "cpu", "C++ (OpenMP) tile rasterizer", _check_native("cpu"), _render_native("cpu"),
                          auto_rank=1))
 register_backend(Backend("reference", None, "pure PyTorch, differentiable by autograd (slow; the oracle)",
                          lambda: None, _render_reference, auto_rank=2))
 register_backend(Backend("cuda-emulated", "cpu", "the CUDA kernels compiled for the host (tests only; slow)",
-                         _check_cpu, _render_native("cpu", emulated=True), test_only=True))
+                         _check_native("cpu"), _render_native("cpu", emulated=True), test_only=True))
 
 _warned: set = set()
 
