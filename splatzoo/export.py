@@ -20,6 +20,7 @@ numpy only: no plyfile dependency.
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -177,56 +178,131 @@ def save_ply(model, path) -> Path:
 
 # --- reading ------------------------------------------------------------------------------------------------
 
-def read_ply_vertices(path) -> tuple[np.ndarray, list[str]]:
-    """(structured array of the first element's properties, header comments) of a binary or ASCII PLY."""
-    path = Path(path)
-    if not path.is_file():
-        raise SplatzooError(f"no PLY file at {path}; pass the file written by `splatzoo export`")
-    data = path.read_bytes()
+def _ply_header(path: Path, data: bytes) -> tuple[str, list[str], list[tuple[str, int, list]], int]:
+    """(format, comments, elements as (name, count, [(property, numpy type or None for lists)]), body offset).
+    Every field is checked here, before anything is sized by the counts the header claims."""
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise SplatzooError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
-    body_start = data.find(b"\n", end) + 1
-    lines = data[:end].decode("ascii", errors="replace").splitlines()
+    newline = data.find(b"\n", end)
+    body_start = len(data) if newline < 0 else newline + 1
+    try:
+        text = data[:end].decode("utf-8")
+    except UnicodeDecodeError:
+        text = None
+    if text is None or "\x00" in text:
+        raise SplatzooError(f"{path}: the PLY header holds binary data, not text; the file is damaged or not a PLY. "
+                            "Export the model again")
+    lines = text.splitlines()
+    if lines[0].strip() != "ply":
+        raise SplatzooError(f"{path} is not a PLY file (its first line is not 'ply')")
+
+    def malformed(number: int, expected: str) -> SplatzooError:
+        return SplatzooError(f"{path}: malformed PLY header line {number + 1} {lines[number].strip()[:80]!r}; expected "
+                             f"{expected}. The file is damaged or not a PLY: export the model again")
+
     fmt, comments, elements = None, [], []
-    for line in lines[1:]:
+    for i, line in enumerate(lines[1:], 1):
         parts = line.split()
         if not parts:
             continue
         if parts[0] == "format":
+            if len(parts) < 2:
+                raise malformed(i, "'format <ascii|binary_little_endian|binary_big_endian> 1.0'")
             fmt = parts[1]
         elif parts[0] == "comment":
             comments.append(line[len("comment "):])
         elif parts[0] == "element":
+            if len(parts) != 3 or not re.fullmatch(r"[0-9]+", parts[2]):
+                raise malformed(i, "'element <name> <count>' with a whole count of 0 or more")
             elements.append((parts[1], int(parts[2]), []))
         elif parts[0] == "property":
             if not elements:
                 raise SplatzooError(f"{path}: property before any element in the PLY header")
-            if parts[1] == "list":
-                elements[-1][2].append((parts[-1], None))
+            if parts[1:2] == ["list"]:
+                if len(parts) != 5:
+                    raise malformed(i, "'property list <count type> <item type> <name>'")
+                elements[-1][2].append((parts[4], None))
+            elif len(parts) != 3:
+                raise malformed(i, "'property <type> <name>'")
             elif parts[1] not in _PLY_TYPES:
                 raise SplatzooError(f"{path}: unknown PLY property type {parts[1]!r}")
             else:
                 elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
+    if fmt is None:
+        raise SplatzooError(f"{path}: the PLY header has no 'format' line; the file is damaged. Export the model again")
+    return fmt, comments, elements, body_start
+
+
+def _ascii_vertices(path: Path, body: bytes, count: int, props: list[tuple[str, str]]) -> np.ndarray:
+    """The first `count` rows of an ASCII body as floats [count, len(props)]; every row must hold a number for each
+    property (extra values on a row are ignored, as before)."""
+    try:
+        text = body.decode("ascii")
+    except UnicodeDecodeError:
+        raise SplatzooError(f"{path}: an ASCII PLY body holds non-ASCII bytes; the file is damaged. "
+                            "Export the model again") from None
+    values = np.empty((count, len(props)), dtype=np.float64)
+    rows = (r for r in text.splitlines() if r.strip())
+    for i in range(count):
+        row = next(rows, None)
+        if row is None:
+            raise SplatzooError(f"{path} is truncated: the header promises {count} vertices but the body holds only "
+                                f"{i} row(s). Export the model again")
+        words = row.split()
+        try:
+            if len(words) < len(props):
+                raise ValueError
+            values[i] = [float(w) for w in words[:len(props)]]
+        except ValueError:
+            raise SplatzooError(f"{path}: vertex row {i + 1} {row.strip()[:80]!r} does not hold {len(props)} numbers "
+                                f"({', '.join(k for k, _ in props[:6])}{' ...' if len(props) > 6 else ''}); "
+                                "the file is damaged. Export the model again") from None
+    return values
+
+
+def read_ply_vertices(path) -> tuple[np.ndarray, list[str]]:
+    """(structured array of the first element's properties, header comments) of a binary or ASCII PLY.
+    The header's counts are checked against the file's size before anything is allocated: a few crafted bytes
+    cannot ask for gigabytes."""
+    path = Path(path)
+    if not path.is_file():
+        raise SplatzooError(f"no PLY file at {path}; pass the file written by `splatzoo export`")
+    data = path.read_bytes()
+    fmt, comments, elements, body_start = _ply_header(path, data)
     if not elements or elements[0][0] != "vertex":
         raise SplatzooError(f"{path}: the first PLY element must be 'vertex' (one per primitive)")
     _, count, props = elements[0]
     if any(t is None for _, t in props):
         raise SplatzooError(f"{path}: list properties in the vertex element are not supported")
+    if not props:
+        raise SplatzooError(f"{path}: the vertex element has no properties; export the model again")
+    names = [k for k, _ in props]
+    if len(set(names)) != len(names):
+        twice = sorted({k for k in names if names.count(k) > 1})
+        raise SplatzooError(f"{path}: the vertex property {', '.join(twice)} is declared twice; the file is damaged")
+    body = len(data) - body_start
     if fmt == "ascii":
-        rows = data[body_start:].decode("ascii").split("\n")[:count]
-        values = np.array([[float(x) for x in r.split()[:len(props)]] for r in rows], dtype=np.float64)
+        most = (body + 1) // (2 * len(props))  # a value takes a digit and a separator (the file's last may lack it)
+        if count > most:
+            raise SplatzooError(f"{path} is truncated or its header is wrong: it promises {count} vertices of "
+                                f"{len(props)} values but {body} bytes follow the header (room for at most {most}). "
+                                "Export the model again")
+        values = _ascii_vertices(path, data[body_start:], count, props)
         arr = np.empty(count, dtype=[(k, t) for k, t in props])
-        for i, (k, _) in enumerate(props):
-            arr[k] = values[:, i] if count else []
+        for i, (k, t) in enumerate(props):
+            if np.dtype(t).kind != "f" and not np.isfinite(values[:, i]).all():
+                raise SplatzooError(f"{path}: the integer property {k} holds NaN or inf; the file is damaged")
+            arr[k] = values[:, i]
         return arr, comments
     if fmt not in ("binary_little_endian", "binary_big_endian"):
-        raise SplatzooError(f"{path}: unsupported PLY format {fmt!r}")
+        raise SplatzooError(f"{path}: unsupported PLY format {fmt!r} (ascii, binary_little_endian or "
+                            "binary_big_endian)")
     endian = "<" if fmt == "binary_little_endian" else ">"
     dtype = np.dtype([(k, endian + t) for k, t in props])
-    if len(data) - body_start < dtype.itemsize * count:
+    if body < dtype.itemsize * count:
         raise SplatzooError(f"{path} is truncated: the header promises {count} vertices of {dtype.itemsize} bytes "
-                            f"but the file holds {len(data) - body_start} bytes after it. Export the model again")
+                            f"but the file holds {body} bytes after it. Export the model again")
     return np.frombuffer(data, dtype=dtype, count=count, offset=body_start), comments
 
 
@@ -249,12 +325,8 @@ def _present_width(name: str, names: list[str]) -> int:
     return width
 
 
-def load_ply(path):
-    """Rebuild the model written by `save_ply` (or a 2DGS point_cloud.ply, as a `2dgs` model)."""
-    from .zoo import create_model
-
-    arr, comments = read_ply_vertices(path)
-    names = list(arr.dtype.names)
+def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dict]:
+    """(model name, config) from the `splatzoo model` / `splatzoo config` comments, or the 2DGS layout without them."""
     model_name, config = None, {}
     for c in comments:
         if c.startswith("splatzoo model "):
@@ -263,10 +335,32 @@ def load_ply(path):
             try:
                 config = json.loads(c[len("splatzoo config "):])
             except json.JSONDecodeError as e:
-                raise SplatzooError(f"{path}: the 'splatzoo config' header comment is not valid JSON ({e})") from e
+                raise SplatzooError(f"{path}: the 'splatzoo config' header comment is not valid JSON ({e}); "
+                                    "export the model again") from None
+            if not isinstance(config, dict):
+                raise SplatzooError(f"{path}: the 'splatzoo config' header comment must be a JSON object of model "
+                                    f"options, got a {type(config).__name__}; export the model again")
     if model_name is None:
-        model_name, config = _infer_2dgs(names, path)
-    model = create_model(model_name, **config)   # no primitives yet: it tells each parameter's trailing shape
+        return _infer_2dgs(names, path)
+    return model_name, config
+
+
+def load_ply(path):
+    """Rebuild the model written by `save_ply` (or a 2DGS point_cloud.ply, as a `2dgs` model). The header's model
+    and config decide what is read, so each is checked against what the file holds before it sizes anything."""
+    from .zoo import create_model
+
+    arr, comments = read_ply_vertices(path)
+    names = list(arr.dtype.names)
+    present = set(names)
+    model_name, config = _header_model(path, comments, names)
+    try:
+        model = create_model(model_name, **config)   # no primitives yet: it tells each parameter's trailing shape
+    except SplatzooError as e:  # unknown model, bad option: the registry's or the config's own words, located
+        raise type(e)(f"{path}: cannot rebuild the model its header names: {e}") from None
+    except (TypeError, ValueError, RuntimeError) as e:  # a plugin's config or constructor refusing the options
+        raise SplatzooError(f"{path}: model {model_name!r} refuses the header's config {str(config)[:200]} "
+                            f"({type(e).__name__}: {str(e)[:200]}); export the model again") from None
     n = arr.shape[0]
     per = _exportable_parameters(model)
     new = {}
@@ -275,13 +369,30 @@ def load_ply(path):
         trailing = tuple(empty.shape[1:])
         if pname in variable and len(trailing) == 1:  # e.g. waves trimmed by pruning: the file tells the width
             trailing = (_present_width(pname, names),)
+        needed = math.prod(trailing) if trailing else 1
+        if needed > len(names):  # a crafted config (say a billion waves) must not make a billion names
+            raise SplatzooError(f"{path}: parameter {pname!r} of model {model_name!r} with config {str(config)[:200]} "
+                                f"needs {needed} properties but the file has {len(names)}; the header's config does "
+                                "not match its data. Export the model again")
         props = _property_names(pname, trailing)
-        missing = [p for p in props if p not in names]
+        missing = [p for p in props if p not in present]
         if missing:
-            raise SplatzooError(f"{path} lacks the properties {', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''} "
-                                f"of parameter {pname!r} of model {model_name!r} {config}; it was not written by "
+            more = " ..." if len(missing) > 4 else ""
+            raise SplatzooError(f"{path} lacks the properties {', '.join(missing[:4])}{more} of parameter {pname!r} "
+                                f"of model {model_name!r} {config}; it was not written by "
                                 "`splatzoo export` for this model (or with another config)")
         cols = np.stack([arr[p].astype(np.float32) for p in props], 1) if props else np.zeros((n, 0), np.float32)
+        bad = int(np.count_nonzero(~np.isfinite(cols)))
+        if bad:
+            raise SplatzooError(f"{path}: parameter {pname!r} has {bad} non-finite (NaN or inf) value(s) in "
+                                f"{', '.join(props[:4])}{' ...' if len(props) > 4 else ''}; the run diverged or the "
+                                "file is damaged. Export the model again from a run without NaN")
+        if not empty.is_floating_point() and empty.dtype != torch.bool and cols.size:
+            whole, info = np.array_equal(cols, np.round(cols)), torch.iinfo(empty.dtype)
+            if not whole or cols.min() < info.min or cols.max() > info.max:
+                raise SplatzooError(f"{path}: {pname!r} holds whole numbers (counts or indices) of {empty.dtype} but "
+                                    "the file has fractions or out-of-range values there; the file is damaged. "
+                                    "Export the model again")
         new[pname] = _from_columns(pname, cols, trailing)
     model.replace_parameters(new)
     return model
@@ -302,4 +413,23 @@ def export_run(run, out) -> Path:
             raise SplatzooError(f"{run} has no trained model (model.pt){hint}")
     else:
         raise SplatzooError(f"{run} does not exist; pass a run directory written by `splatzoo train` or a model .pt")
+    _check_export_target(model_path, Path(out))
     return save_ply(load_model(model_path), out)
+
+
+def _check_export_target(model_path: Path, out: Path) -> None:
+    """`--out RUN/model.pt` would replace the trained model by a PLY: export writes only files named .ply, and never
+    over the model it reads."""
+    if out.suffix.lower() != ".ply" and not out.is_dir():  # a folder gets save_ply's own "is a folder" message
+        suggestion = out.with_suffix(".ply") if out.name and out.suffix else out.parent / f"{out.name or 'model'}.ply"
+        raise SplatzooError(f"export writes a PLY file, so --out must end in .ply; got {out}. Name the file e.g. "
+                            f"{suggestion}")
+    same = out.resolve() == model_path.resolve()
+    if not same and out.exists():
+        try:
+            same = out.samefile(model_path)
+        except OSError:
+            same = False
+    if same:
+        raise SplatzooError(f"refusing to export onto the model being read ({model_path}); choose another --out, "
+                            f"e.g. {model_path.with_suffix('.ply')}")

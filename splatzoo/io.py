@@ -1,7 +1,10 @@
-"""Atomic file output: write to a temporary file beside the target, then rename over it."""
+"""File input and output in one place: atomic writes (a temporary file beside the target, renamed over it), JSON
+without non-finite numbers, and torch files read without running code."""
 from __future__ import annotations
 
+import errno
 import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
@@ -21,7 +24,13 @@ def atomic_path(path, suffix: str = ""):
     except OSError as e:
         raise SplatzooError(f"cannot write {path}: {e.strerror or e}. Choose a writable output location.") from e
     try:
-        yield Path(tmp)
+        try:
+            yield Path(tmp)
+        except OSError as e:
+            if e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EFBIG):
+                raise SplatzooError(f"cannot write {path}: {e.strerror or e}. Free disk space or choose another "
+                                    "location; the previous file (if any) is unchanged") from None
+            raise
         # mkstemp makes the file private (0600); give the result the permissions a plain open() would
         umask = os.umask(0)
         os.umask(umask)
@@ -33,8 +42,37 @@ def atomic_path(path, suffix: str = ""):
 
 
 def write_json(path, data) -> None:
+    """Strict JSON (other tools reject NaN and Infinity): a non-finite number is written as null."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_jsonable) + "\n")
+        tmp.write_text(json.dumps(_finite(data), indent=2, sort_keys=False, default=_jsonable, allow_nan=False) + "\n")
+
+
+def read_json(path, what: str, fix: str) -> object:
+    """Parse a JSON file we wrote; a missing, unreadable or malformed one is a SplatzooError that says `fix`."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise SplatzooError(f"{what} {path} does not exist; {fix}") from None
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise SplatzooError(f"{what} {path} is damaged ({e}); {fix}") from None
+
+
+def read_torch(path, what: str, fix: str) -> object:
+    """Load a torch file with weights_only=True: tensors and plain containers only, so a crafted file cannot run
+    code. Any failure (missing, truncated, empty, not ours, a pickle that asks for code) is a SplatzooError."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise SplatzooError(f"{what} {path} does not exist; {fix}")
+    if path.stat().st_size == 0:
+        raise SplatzooError(f"{what} {path} is empty (0 bytes); {fix}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types here: UnpicklingError, RuntimeError, EOFError, ...
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise SplatzooError(f"{what} {path} cannot be read safely ({reason[:200]}); {fix}") from None
 
 
 def write_text(path, text: str) -> None:
@@ -49,9 +87,19 @@ def torch_save(obj, path) -> None:
         torch.save(obj, tmp)
 
 
+def _finite(o):
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    return o
+
+
 def _jsonable(o):
     if hasattr(o, "tolist"):
-        return o.tolist()
+        return _finite(o.tolist())
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"cannot store {type(o).__name__} in JSON")

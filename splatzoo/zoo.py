@@ -2,15 +2,19 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from pathlib import Path
 
 import torch
 
 from .errors import SplatzooError
-from .io import torch_save
+from .io import read_torch, torch_save
 from .models.base import ModelOptionError, SplatModel
 from .registry import MODELS, ModelSpec
+
+_MODEL_FILE_FIX = "pass a .pt file written by splatzoo (run/model.pt or run/checkpoint.pt)"
+_BOOLS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
 
 
 def list_models() -> list[str]:
@@ -20,6 +24,43 @@ def list_models() -> list[str]:
 
 def get_model_spec(name: str) -> ModelSpec:
     return MODELS.get(name)
+
+
+def _option_value(model: str, key: str, typ, value, default):
+    """One option converted to its field's type. Options often arrive as strings (command line, PLY headers), and
+    bool("False") is True, so bools are parsed by their words rather than cast."""
+    def bad(expected: str):
+        return ModelOptionError(f"model {model!r}: option {key} expects {expected}, got {value!r}")
+
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        if type(value) is int and value in (0, 1):
+            return bool(value)
+        if isinstance(value, str) and value.strip().lower() in _BOOLS:
+            return _BOOLS[value.strip().lower()]
+        raise bad("bool (true/false, yes/no, on/off or 1/0)")
+    if typ in (int, float):
+        if isinstance(value, bool):  # a bool is an int to Python, but never a count or a rate
+            raise bad(typ.__name__)
+        try:
+            if typ is float:
+                converted = float(value)
+            elif isinstance(value, float):
+                if not value.is_integer():
+                    raise ValueError  # int() would silently drop the fraction
+                converted = int(value)
+            else:
+                converted = int(value)
+        except (TypeError, ValueError, OverflowError):
+            raise bad(typ.__name__) from None
+        # a model's own non-finite default (say max_scale = inf) passes through create_model(**asdict(config))
+        if typ is float and not math.isfinite(converted) and not (isinstance(value, float) and value == default):
+            raise bad("a finite float")
+        return converted
+    if typ is str:
+        return str(value)
+    return value  # Optional[...] and other types: the config class checks them
 
 
 def make_config(name: str, **options):
@@ -35,11 +76,7 @@ def make_config(name: str, **options):
     for k, v in options.items():
         if v is None:
             continue
-        typ = hints.get(k)
-        try:
-            values[k] = typ(v) if typ in (int, float, str) and not isinstance(v, bool) else v
-        except (TypeError, ValueError) as e:
-            raise ModelOptionError(f"model {name!r}: option {k} expects {typ.__name__}, got {v!r}") from e
+        values[k] = _option_value(name, k, hints.get(k), v, known[k].default)
     return spec.config_cls(**values)
 
 
@@ -63,27 +100,132 @@ def save_model(model: SplatModel, path) -> None:
     torch_save(model.checkpoint(), path)
 
 
-def model_from_checkpoint(ckpt: dict) -> SplatModel:
-    spec = MODELS.get(ckpt["model"])
-    config = spec.config_cls(**ckpt["config"])
-    state = ckpt["state"]
-    model = spec.cls(config, 0)
-    model.load_checkpoint_state(state)
-    model.name = ckpt["model"]
+# --- loading ----------------------------------------------------------------------------------------------------
+
+_CONFIG_TYPES = {bool: (bool,), int: (int,), float: (int, float), str: (str,)}
+
+
+def _check_config(name: str, config_cls, config: dict, fail) -> None:
+    """Checkpoint configs were written by dataclasses.asdict: every value already has its field's type."""
+    known = {f.name for f in dataclasses.fields(config_cls)}
+    unknown = [k for k in config if k not in known]
+    if unknown:
+        raise fail(f"its config has option(s) {_brief(', '.join(map(repr, unknown)))} that model {name!r} does not "
+                   f"have (its options: {', '.join(sorted(known)) or 'none'})")
+    hints = typing.get_type_hints(config_cls)
+    for k, v in config.items():
+        allowed = _CONFIG_TYPES.get(hints.get(k))
+        if allowed and (not isinstance(v, allowed) or (isinstance(v, bool) and bool not in allowed)):
+            raise fail(f"config option {k} of model {name!r} must be {hints[k].__name__}, got {_brief(repr(v))}")
+
+
+def _brief(x, limit: int = 200) -> str:
+    """First line of str(x), shortened: crafted files can hold huge values, and messages stay one line."""
+    text = (str(x).strip().splitlines() or [""])[0]
+    return text if len(text) <= limit else text[:limit] + " ..."
+
+
+def _shapes(model: SplatModel) -> dict[str, tuple[int, ...]]:
+    """Shapes of what a checkpoint restores: the stored state and the per-primitive tensors."""
+    tensors = {**model.state_dict(), **model.per_primitive()}
+    return {k: tuple(v.shape) for k, v in tensors.items()}
+
+
+def _check_shapes(name: str, expected: dict, tensors: dict, variable: set, fail) -> None:
+    """`expected` is from the model built with 0 primitives: a first dimension of 0 marks a per-primitive tensor,
+    whose rows must agree across tensors and whose trailing shape is fixed (but for pruned-width ones)."""
+    rows = {}
+    for k, ref in expected.items():
+        if k not in tensors:
+            continue
+        shape = tuple(tensors[k].shape)
+        if ref and ref[0] == 0:
+            same = len(shape) == len(ref) and (shape[1:] == ref[1:] or k in variable)
+            if not same:
+                raise fail(f"{k} has shape {list(shape)} but model {name!r} expects "
+                     f"[N{''.join(f', {d}' for d in ref[1:])}] (N primitives)")
+            rows[k] = shape[0]
+        elif shape != ref:
+            raise fail(f"{k} has shape {list(shape)} but model {name!r} expects {list(ref)}")
+    if len(set(rows.values())) > 1:
+        counts = ", ".join(f"{k}: {n}" for k, n in rows.items())
+        raise fail(f"its per-primitive parameters disagree on the number of primitives ({counts})")
+
+
+def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
+    """model_from_checkpoint with errors that say where the checkpoint came from (`where`) and what to do (`fix`)."""
+    def fail(problem: str) -> SplatzooError:
+        return SplatzooError(f"{where}: {problem}; {fix}")
+
+    if not isinstance(ckpt, dict):
+        raise fail(f"expected a splatzoo model (a dict with 'model', 'config' and 'state'), found "
+                   f"a {type(ckpt).__name__}")
+    missing = [k for k in ("model", "config", "state") if k not in ckpt]
+    if missing:
+        raise fail(f"not a splatzoo model: no {', '.join(map(repr, missing))} entry")
+    name, config, state = ckpt["model"], ckpt["config"], ckpt["state"]
+    if not isinstance(name, str) or not isinstance(config, dict) or not isinstance(state, dict):
+        raise fail("not a splatzoo model: 'model' must be a name, 'config' and 'state' dicts")
+    try:
+        spec = MODELS.get(name)
+    except SplatzooError as e:  # unknown or broken plugin model: the registry's message, located
+        raise type(e)(f"{where}: {e}") from None
+    _check_config(name, spec.config_cls, config, fail)
+    try:
+        model = spec.cls(spec.config_cls(**config), 0)
+    except (SplatzooError, TypeError, ValueError, RuntimeError) as e:
+        raise fail(f"its config {_brief(config)} is not valid for model {name!r} ({_brief(e)})") from None
+
+    params = dict(model.named_parameters())
+    for k, v in state.items():
+        if not isinstance(k, str) or not isinstance(v, torch.Tensor) or v.layout != torch.strided:
+            raise fail(f"state entry {k!r} is a {type(v).__name__}, not a dense tensor")
+        if k in params and not v.is_floating_point():
+            raise fail(f"parameter {k} holds {v.dtype} values; parameters are floating point")
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            bad = int((~torch.isfinite(v)).sum())
+            raise fail(f"{k} has {bad} non-finite (NaN or inf) value(s): the run diverged or the file is damaged")
+    lacking = [k for k in params if k not in state]
+    if lacking:
+        raise fail(f"its state lacks parameter(s) {', '.join(lacking)} of model {name!r} with config {_brief(config)}")
+
+    expected = _shapes(model)
+    variable = set(getattr(model, "variable_width", ()))
+    stored = model.state_dict()
+    try:  # entries the model's own checkpoint() adds (e.g. packed waves): then its loader checks the layout
+        own_format = set(model.checkpoint()["state"]) - set(stored)
+    except Exception:
+        own_format = set()
+    if not own_format & set(state):
+        extra = [k for k in state if k not in stored]
+        absent = [k for k in stored if k not in state]
+        if extra or absent:
+            problems = ([f"unexpected {', '.join(extra)}"] if extra else []) + (
+                [f"missing {', '.join(absent)}"] if absent else [])
+            raise fail(f"its state does not match model {name!r} with config {_brief(config)}: {'; '.join(problems)}")
+        _check_shapes(name, expected, state, variable, fail)
+    try:
+        model.load_checkpoint_state(state)
+    except (TypeError, KeyError, ValueError, RuntimeError, IndexError) as e:
+        raise fail(f"its state does not fit model {name!r} with config {_brief(config)} "
+                   f"({type(e).__name__}: {_brief(e)})") from None
+    _check_shapes(name, expected, {**model.state_dict(), **model.per_primitive()}, variable, fail)
+    model.name = name
     return model
 
 
+def model_from_checkpoint(ckpt: dict) -> SplatModel:
+    """The model stored by SplatModel.checkpoint() (as save_model and training write it), checked entry by entry:
+    a damaged or crafted checkpoint is a SplatzooError, not a model that fails later."""
+    return _model_from_checkpoint(ckpt, "model checkpoint",
+                                  "use a checkpoint written by splatzoo (save_model or training)")
+
+
 def load_model(path) -> SplatModel:
-    """Load a model written by save_model (or the "model" entry of a training checkpoint)."""
+    """Load a model written by save_model (or the "model" entry of a training checkpoint). The file is read with
+    weights_only: a crafted file cannot run code, it is refused."""
     path = Path(path)
-    if not path.is_file():
-        raise SplatzooError(f"no model file at {path}; pass the path of a .pt file written by splatzoo")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise SplatzooError(f"cannot read model file {path}: {e}. Is it a splatzoo checkpoint?") from e
+    ckpt = read_torch(path, "model file", _MODEL_FILE_FIX)
     if isinstance(ckpt, dict) and "state" not in ckpt and isinstance(ckpt.get("model"), dict):
         ckpt = ckpt["model"]  # a training checkpoint: the model is one entry of it
-    if not isinstance(ckpt, dict) or "state" not in ckpt:
-        raise SplatzooError(f"{path} is not a splatzoo model file (no 'state' entry)")
-    return model_from_checkpoint(ckpt)
+    return _model_from_checkpoint(ckpt, f"model file {path}", _MODEL_FILE_FIX)
