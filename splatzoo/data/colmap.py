@@ -27,6 +27,20 @@ MODEL_FILES = ("cameras", "images", "points3D")
 UNDISTORTED_DIR = "undistorted"
 
 
+def import_pycolmap():
+    """pycolmap, with SIGTERM handled as before: importing it installs a handler (its logging library's) that
+    prints a C++ stack trace and kills the process, skipping every clean-up and checkpoint on the way out."""
+    import signal
+    import threading
+
+    before = signal.getsignal(signal.SIGTERM)
+    import pycolmap
+
+    if before is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, before)
+    return pycolmap
+
+
 def find_sparse_dir(root: Path) -> Path | None:
     """sparse/0/, sparse/ or the folder itself, whichever holds cameras.bin or cameras.txt."""
     for cand in (root / "sparse" / "0", root / "sparse", root):
@@ -37,7 +51,7 @@ def find_sparse_dir(root: Path) -> Path | None:
 
 def read_model(sparse: Path):
     """pycolmap.Reconstruction of a text or binary model, or a DataError that names the folder."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     missing = [n for n in MODEL_FILES if not (sparse / f"{n}.bin").is_file() and not (sparse / f"{n}.txt").is_file()]
     if missing:
@@ -69,7 +83,7 @@ def _quiet_colmap(level: int = 1):
     our own progress messages say what is happening."""
     import contextlib
 
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     @contextlib.contextmanager
     def cm():
@@ -88,7 +102,7 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
     Masks (masks/<image name> or masks/<stem>.png) are warped by the same maps. If the dataset folder is not
     writable the copy goes to ~/.cache/splatzoo/undistorted/<fingerprint>/ instead.
     """
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     stamp = _model_stamp(sparse, images_dir, masks_dir)
     target = root / UNDISTORTED_DIR
@@ -129,7 +143,7 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
 
 
 def _undistort_masks(out: Path, sparse: Path, images_dir: Path, masks_dir: Path) -> None:
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     model = read_model(sparse)
     names = [im.name for im in model.images.values() if im.has_pose]
@@ -298,7 +312,7 @@ def write_model(out_dir, cameras: list[Camera], names: list[str], points: np.nda
     points [M,3], colors [M,3] uint8 or [0,1] float; tracks[m] = [(view index, xy pixel position), ...]
     (observations, so the model is like one SfM would give). Writes binary, or text with text=True.
     """
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

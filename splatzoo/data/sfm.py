@@ -85,7 +85,8 @@ def _check_images(images_dir: Path) -> list[Path]:
 def sfm_in_place(dataset: Path, *, camera_model: str = "SIMPLE_RADIAL", single_camera: bool = True,
                  num_threads: int = -1, seed: int = 0, progress=None) -> SfMResult:
     """Run SfM on dataset/images, writing dataset/database.db and dataset/sparse/0 (the largest model)."""
-    import pycolmap
+    from .colmap import import_pycolmap
+    pycolmap = import_pycolmap()
 
     from .colmap import _quiet_colmap
 

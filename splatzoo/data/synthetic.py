@@ -26,6 +26,7 @@ from __future__ import annotations
 import difflib
 import json
 import math
+import os
 import shutil
 import tempfile
 import time
@@ -510,10 +511,29 @@ def prepare_output(out: Path, overwrite: bool) -> Path:
                         "--overwrite to replace it")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        return Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        _remove_abandoned_temp(out)
+        return Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-{os.getpid()}-", dir=out.parent))
     except OSError as e:
         raise DataError(f"cannot create output folder next to {out}: {e.strerror or e}; choose a writable "
                         "location") from None
+
+
+def _remove_abandoned_temp(out: Path) -> None:
+    """Temporary folders beside `out` whose process is gone (killed with SIGKILL, which runs no clean-up)."""
+    import glob
+    import re
+
+    pattern = re.compile(re.escape(f".{out.name}.tmp-") + r"(\d+)-")
+    for p in out.parent.glob(f".{glob.escape(out.name)}.tmp-*"):
+        m = pattern.match(p.name)
+        if not m or not p.is_dir():
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+        except ProcessLookupError:
+            shutil.rmtree(p, ignore_errors=True)
+        except (PermissionError, OverflowError):
+            pass  # alive under another user, or not a pid: leave it
 
 
 def finish_output(tmp: Path, out: Path) -> None:
@@ -582,7 +602,8 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
             est = np.array([im.projection_center() for im in reg])
             true = np.array([by_name[im.name].center.double().numpy() for im in reg])
             s, R, t = similarity_align(est, true)
-            import pycolmap
+            from .colmap import import_pycolmap
+            pycolmap = import_pycolmap()
 
             rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
             err = np.linalg.norm(np.array([im.projection_center() for im in reg]) - true, axis=1)
