@@ -65,7 +65,8 @@ def main(argv=None) -> int:
 
 def timing(args) -> int:
     from splatzoo.compare import _safe
-    from splatzoo.evaluate import load_run, measure_fps
+    from splatzoo.evaluate import measure_fps
+    from splatzoo.runs import load_run
 
     for name in args.scenes:
         runs = Path(args.out) / name / "runs"
@@ -92,7 +93,8 @@ def train_speed(args) -> int:
     import shutil
     import tempfile
 
-    from splatzoo.training import TrainConfig, train
+    from splatzoo.runs import train
+    from splatzoo.training import TrainConfig
 
     variants = {"gabor": {}, "adaptive": {"prune_waves": float(args.threshold), "prune_from": 0.0}}
     with tempfile.TemporaryDirectory() as tmp:

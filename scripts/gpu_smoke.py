@@ -23,7 +23,8 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=600)
     args = ap.parse_args(argv)
     from splatzoo.data import load_scene
-    from splatzoo.training import TrainConfig, train
+    from splatzoo.runs import train
+    from splatzoo.training import TrainConfig
     from splatzoo.training.trainer import test_psnr
 
     if not torch.cuda.is_available():

@@ -145,10 +145,20 @@ _WHITE = typer.Option(False, "--white-background", help="composite RGBA images o
 _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, reference, cpu or cuda")
 
 
+_TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "num_primitives", "max_primitives", "lambda_dist",
+                 "lambda_normal", "checkpoint_every", "checkpoint_minutes")
+
+
+def _given(ctx: typer.Context) -> set[str]:
+    """The parameters typed on the command line (not defaults): a resumed run takes the rest from its record."""
+    return {name for name in ctx.params if getattr(ctx.get_parameter_source(name), "name", "") == "COMMANDLINE"}
+
+
 @app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 def train_command(
     ctx: typer.Context,
-    data: Path = typer.Argument(..., metavar="DATA", help="COLMAP folder (images/ + sparse/0/) or Blender folder (transforms_*.json)"),
+    data: Optional[Path] = typer.Argument(None, metavar="DATA", help="COLMAP folder (images/ + sparse/0/) or Blender "
+                                          "folder (transforms_*.json); with --resume, the run's own dataset by default"),
     model: str = typer.Option("gabor", "--model", "-m", help="model name (see `splatzoo models -v` for options)"),
     iterations: int = typer.Option(30000, "--iterations", "-i", help="training iterations; the schedule scales with it"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="run directory (default runs/<model>)"),
@@ -162,30 +172,51 @@ def train_command(
                                                  help="start from exactly N primitives (subsampled initial points)"),
     max_primitives: Optional[int] = typer.Option(None, "--max-primitives", help="cap densification at N primitives"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
-    resume: bool = typer.Option(False, "--resume", help="continue an interrupted run in --out"),
+    resume: bool = typer.Option(False, "--resume", help="continue the interrupted run in --out with its own settings"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="replace the run already in --out"),
     lambda_dist: float = typer.Option(0.0, "--lambda-dist", help="depth-distortion weight (2DGS default 0)"),
     lambda_normal: float = typer.Option(0.05, "--lambda-normal", help="normal-consistency weight"),
+    checkpoint_every: int = typer.Option(2000, "--checkpoint-every", help="write a checkpoint every N iterations"),
+    checkpoint_minutes: float = typer.Option(5.0, "--checkpoint-minutes",
+                                             help="also write one every M minutes (0: off); Ctrl-C always writes one"),
 ) -> None:
     """Train a model on a dataset. Model options follow the model name, e.g. `--model gabor --n-waves 8`.
 
-    The fixed-count comparison of the paper: `--no-densify --num-primitives N`.
+    The fixed-count comparison of the paper: `--no-densify --num-primitives N`. Ctrl-C (or SIGTERM) stops after
+    the current iteration with a checkpoint; `--resume` continues from it.
     """
     from .options import parse_model_args
-    from .training import TrainConfig, train
+    from .runs import Run, train
+    from .training import TrainConfig
 
-    model_options = parse_model_args(model, list(ctx.args))
-    cfg = TrainConfig(iterations=iterations, backend=backend, seed=seed, densify=densify,
-                      num_primitives=num_primitives, max_primitives=max_primitives,
-                      lambda_dist=lambda_dist, lambda_normal=lambda_normal)
+    given = _given(ctx)
     out = out or Path("runs") / model
-    result = train(data, model, model_options, cfg, out, resume=resume,
-                   scene_options=_scene_options(resolution, max_width, test_every, white_background))
+    values = {k: v for k, v in ctx.params.items() if k in _TRAIN_FIELDS}
+    scene_options = _scene_options(resolution, max_width, test_every, white_background)
+    if resume:  # only what was typed is checked against the run; the rest comes from its record
+        run = Run(out)
+        options_model = model if "model" in given or run.status in ("new", "foreign") else run.record()["model"]
+        result = train(data, model if "model" in given else None, parse_model_args(options_model, list(ctx.args)),
+                       {k: v for k, v in values.items() if k in given}, out, resume=True,
+                       scene_options={k: v for k, v in scene_options.items()
+                                      if {"resolution": "resolution", "max_width": "max_width",
+                                          "test_every": "test_every", "background": "white_background"}[k] in given})
+    else:
+        if data is None:
+            raise typer.BadParameter("give the dataset folder DATA (only --resume can take it from the run)")
+        result = train(data, model, parse_model_args(model, list(ctx.args)), TrainConfig(**values), out,
+                       overwrite=overwrite, scene_options=scene_options)
     m = result.metrics
     if m:
-        waves = f"  {100 * m['wave_fraction']:.1f}% of the waves kept" if m.get("wave_fraction", 1.0) < 1.0 else ""
-        typer.echo(f"{model}: PSNR {m['psnr']:.2f}  SSIM {m['ssim']:.4f}  LPIPS {m['lpips']:.4f}  "
-                   f"{m['num_primitives']} primitives{waves}  {m['fps']:.1f} FPS  {m['size_bytes'] / 1e6:.3f} MB  "
-                   f"-> {result.run_dir}")
+        typer.echo(f"{result.model.name}: PSNR {_fmt(m.get('psnr'), '.2f')}  SSIM {_fmt(m.get('ssim'), '.4f')}  "
+                   f"LPIPS {_fmt(m.get('lpips'), '.4f')}  {m['num_primitives']} primitives"
+                   + (f"  {100 * m['wave_fraction']:.1f}% of the waves kept" if (m.get("wave_fraction") or 1.0) < 1.0
+                      else "")
+                   + f"  {_fmt(m.get('fps'), '.1f')} FPS  {m['size_bytes'] / 1e6:.3f} MB  -> {result.run_dir}")
+
+
+def _fmt(value, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
 
 
 @app.command("eval")
@@ -197,7 +228,8 @@ def eval_command(
                                          help="3dgs ([0,1] inputs, as the paper's tables) or standard ([-1,1])"),
 ) -> None:
     """Evaluate a trained run on its test views; prints a table and writes RUN/metrics.json."""
-    from .evaluate import evaluate_run, metrics_table
+    from .evaluate import metrics_table
+    from .runs import evaluate_run
 
     metrics = evaluate_run(run, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention)
     typer.echo(metrics_table(metrics))
@@ -213,7 +245,7 @@ def render_command(
     backend: str = _BACKEND,
 ) -> None:
     """Render a trained run's views to PNG (and an orbit video)."""
-    from .evaluate import render_run
+    from .runs import render_run
 
     paths = render_run(run, split=split, video=video, backend=backend, frames=frames)
     typer.echo(f"wrote {len(paths)} files under {Path(run) / 'renders'}")
@@ -229,7 +261,9 @@ def compare_command(
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n", help="equal primitive count for all"),
     densify: bool = typer.Option(False, "--densify/--no-densify", help="densify (off: the paper's fixed-count protocol)"),
     quick: bool = typer.Option(False, "--quick", help="small scene and short schedule: a few minutes on 2 cores"),
-    seed: int = typer.Option(0, "--seed"),
+    seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other "
+                                   "settings (without it they are an error; runs with the same settings are reused)"),
     backend: str = _BACKEND,
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,
@@ -242,7 +276,7 @@ def compare_command(
     from .compare import compare
 
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
-            seed=seed, backend=backend, synthetic_scene=scene,
+            seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite,
             scene_options=_scene_options(resolution, max_width, test_every, white_background))
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")
@@ -260,7 +294,8 @@ def sweep_command(
     out: Path = typer.Option(Path("runs/sweep"), "--out", "-o", help="output folder"),
     iterations: Optional[int] = typer.Option(None, "--iterations", "-i", help="iterations per run (30000; quick 400)"),
     quick: bool = typer.Option(False, "--quick", help="small synthetic scene (96x96) and a short schedule"),
-    seed: int = typer.Option(0, "--seed"),
+    seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other settings"),
     backend: str = _BACKEND,
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,
@@ -275,7 +310,7 @@ def sweep_command(
     options = parse_model_args(model, list(ctx.args))
     options.pop("n_waves", None)
     sweep(data, out, model=model, n_waves=n_waves, num_primitives=num_primitives, iterations=iterations,
-          quick=quick, seed=seed, backend=backend, synthetic_scene=scene, model_options=options,
+          quick=quick, seed=seed, backend=backend, synthetic_scene=scene, model_options=options, overwrite=overwrite,
           scene_options=_scene_options(resolution, max_width, test_every, white_background))
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: sweep.json, report.md, pareto.png")
@@ -318,12 +353,30 @@ def export_command(
 
 
 def main() -> None:
-    """Entry point: splatzoo's own errors become one clear line and exit code 2 (no traceback)."""
+    """Entry point: splatzoo's own errors become one clear line and exit code 2 (no traceback); an interrupted
+    training exits 130 (SIGINT) or 143 (SIGTERM) after saying how to resume."""
+    import signal
+
+    # SIGTERM unwinds like Ctrl-C (temporary files and folders are removed on the way out) instead of killing
+    signal.signal(signal.SIGTERM, _on_signal)
+    signal.signal(signal.SIGINT, _on_signal)
     try:
         app()
     except SplatzooError as e:
-        typer.echo(f"error: {e}", err=True)
-        sys.exit(2)
+        interrupted = hasattr(e, "exit_code")  # runs.TrainingInterrupted: not an error, a stop on request
+        typer.echo(str(e) if interrupted else f"error: {e}", err=True)
+        sys.exit(getattr(e, "exit_code", 2))
+    except SystemExit as e:
+        # the command line layer ends an interrupt with exit 130 (or "Aborted!", 1); say which signal it was
+        sys.exit(_received_signal[0] if _received_signal and e.code in (1, 130) else e.code)
+
+
+_received_signal: list[int] = []
+
+
+def _on_signal(signum, frame):
+    _received_signal[:] = [128 + signum]
+    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

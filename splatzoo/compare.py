@@ -1,9 +1,8 @@
 """`splatzoo compare`: train several models under one budget and report the trade side by side."""
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,8 @@ import torch
 
 from .errors import SplatzooError
 from .io import atomic_path, write_json, write_text
-from .training import TrainConfig, train
+from .runs import Run, differences, evaluate_run, make_record, train
+from .training import TrainConfig
 
 
 @dataclass
@@ -34,43 +34,55 @@ def builtin_scene(out: Path, name: str | None, preset: QuickPreset | None, *, se
     from .data.synthetic import make_synthetic_scene
 
     name = name or (preset.scene if preset else "sweater")
-    data = Path(out) / f"scene-{name}"
+    views, width, height = (preset.views, preset.width, preset.height) if preset else (48, 256, 256)
+    # the folder name states every setting, so a scene made for other settings is never reused
+    data = Path(out) / f"scene-{name}-{width}x{height}-{views}views-seed{seed}"
     if not (data / "sparse").exists():
-        kw = {"views": preset.views, "width": preset.width, "height": preset.height} if preset else {}
-        make_synthetic_scene(name, data, seed=seed, progress=progress, **kw)
+        make_synthetic_scene(name, data, views=views, width=width, height=height, seed=seed, progress=progress,
+                             overwrite=data.exists())
     return data
 
 
-def parse_model_arg(arg: str) -> tuple[str, str, dict]:
-    """'gabor' or 'gabor:n_waves=8,...' -> (label, model name, options)."""
+@dataclass(frozen=True)
+class ModelChoice:
+    """One model of a comparison: its label (report rows, run folder), registered name and config options
+    (typed values or strings; make_config converts and checks them)."""
+
+    label: str
+    model: str
+    options: dict = field(default_factory=dict, hash=False)
+
+
+def parse_model_arg(arg: str) -> ModelChoice:
+    """'gabor' or 'gabor:n_waves=8,prune_waves=0.01' (or n-waves=8) -> ModelChoice(label=arg, ...)."""
     name, _, rest = arg.partition(":")
     options = {}
     for item in filter(None, rest.split(",")):
         key, eq, value = item.partition("=")
         if not eq:
             raise SplatzooError(f"model option {item!r} in {arg!r} must look like key=value")
-        options[key.strip().replace("-", "_")] = value.strip()
-    return arg, name, options
+        options[key.strip().lstrip("-").replace("-", "_")] = value.strip()
+    return ModelChoice(arg, name.strip(), options)
 
 
 def compare(models: list[str], data=None, out="runs/compare", *, iterations: int | None = None,
             num_primitives: int | None = None, densify: bool = False, quick: bool = False, seed: int = 0,
             backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
-            synthetic_scene: str | None = None) -> dict:
-    """Train every model with identical data, initial points and budget; write compare.json, report.md,
-    compare.png and convergence.png into `out`. Without `data`, a built-in synthetic scene is made."""
+            synthetic_scene: str | None = None, overwrite: bool = False) -> dict:
+    """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
+    budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
+    synthetic scene is made. Runs in out/runs/<label> made with the same settings are reused (finished) or
+    resumed (interrupted); made with other settings, they are an error, or retrained with `overwrite`."""
     from .data import load_scene
-    from .zoo import get_model_spec, make_config
+    from .zoo import make_config
 
     if not models:
         raise SplatzooError("name at least one model to compare, e.g. `splatzoo compare gabor 2dgs`")
-    parsed = [parse_model_arg(m) for m in models]
-    labels = [p[0] for p in parsed]
-    if len(set(labels)) != len(labels):
+    choices = [m if isinstance(m, ModelChoice) else parse_model_arg(m) for m in models]
+    labels = [c.label for c in choices]
+    if len(set(labels)) != len(labels) or len({_safe(k) for k in labels}) != len(labels):
         raise SplatzooError(f"each model may appear once; got {', '.join(labels)}")
-    for _, name, opts in parsed:  # fail on a typo before hours of training
-        get_model_spec(name)
-        make_config(name, **opts)
+    model_configs = {c.label: make_config(c.model, **c.options) for c in choices}  # a typo fails before training
     out = Path(out)
     preset = QuickPreset() if quick else None
     if data is None:
@@ -80,27 +92,43 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     iterations = iterations or (preset.iterations if preset else 30000)
     num_primitives = num_primitives or (preset.num_primitives if preset else None)
     base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, seed=seed,
-                           backend=backend)
-    runs, settings = {}, {"data": str(data), "scene": scene.name, "iterations": iterations,
+                           backend=backend).validate()
+    # decide every run before training any: a run made with other settings is an error (or, with overwrite,
+    # retrained), never a row of old numbers beside new settings
+    plan = {}
+    for c in choices:
+        run = Run(out / "runs" / _safe(c.label))
+        status = run.status
+        if status == "foreign":
+            raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
+        if status != "new":
+            diffs = differences(run.record(), make_record(scene, scene_options, c.model, model_configs[c.label],
+                                                          base_cfg))
+            if diffs and not overwrite:
+                raise SplatzooError(f"{run.path} was trained with other settings ({'; '.join(diffs)}); pass "
+                                    "--overwrite to retrain it, or choose another --out")
+            status = "overwrite" if diffs else status
+        plan[c.label] = (run, status)
+    runs, settings = {}, {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
                           "num_primitives": num_primitives, "densify": densify, "seed": seed, "backend": backend,
                           "scene_options": scene_options, "models": labels,
                           "train_views": len(scene.train), "test_views": len(scene.test)}
-    for label, name, opts in parsed:
-        run_dir = out / "runs" / _safe(label)
-        if (run_dir / "metrics.json").exists() and (run_dir / "model.pt").exists():
-            runs[label] = json.loads((run_dir / "metrics.json").read_text())  # finished earlier: reuse
-            continue
-        resume = (run_dir / "checkpoint.pt").exists()
-        result = train(scene, name, opts, replace(base_cfg), run_dir, resume=resume, progress=progress,
-                       scene_options=scene_options)
-        runs[label] = result.metrics
-        settings["backend"] = result.metrics.get("backend", backend)
+    for c in choices:
+        run, status = plan[c.label]
+        if status == "finished":  # trained earlier with these settings: reuse
+            runs[c.label] = run.metrics() or evaluate_run(run.path, backend=backend)
+        else:
+            result = train(scene, c.model, c.options, replace(base_cfg), run.path, resume=status in ("started", "interrupted"),
+                           overwrite=status == "overwrite", progress=progress, scene_options=scene_options,
+                           command="splatzoo compare")
+            runs[c.label] = result.metrics
+        settings["backend"] = runs[c.label].get("backend", backend)
     report = {"runs": runs, "settings": settings}
     write_json(out / "compare.json", report)
     write_text(out / "report.md", report_markdown(report))
-    plot_convergence({label: out / "runs" / _safe(label) for label in labels}, out / "convergence.png")
-    plot_comparison(scene, {label: out / "runs" / _safe(label) for label in labels}, out / "compare.png",
-                    backend=settings["backend"])
+    run_dirs = {c.label: plan[c.label][0] for c in choices}
+    plot_convergence(run_dirs, out / "convergence.png")
+    plot_comparison(scene, run_dirs, out / "compare.png", backend=settings["backend"])
     return report
 
 
@@ -108,21 +136,32 @@ def _safe(label: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
 
 
+def _num(v) -> float:
+    """A metric from JSON as a float: null (a non-finite value, e.g. the PSNR of a perfect render) is NaN."""
+    return float("nan") if v is None else float(v)
+
+
 def report_markdown(report: dict) -> str:
     runs, s = report["runs"], report["settings"]
     labels = list(runs)
-    best = {
-        "ssim": max(labels, key=lambda k: runs[k]["ssim"]),
-        "psnr": max(labels, key=lambda k: runs[k]["psnr"]),
-        "lpips": min(labels, key=lambda k: runs[k]["lpips"] if math.isfinite(runs[k]["lpips"]) else 1e9),
-    }
+    get = lambda k, key: _num(runs[k].get(key))  # noqa: E731
 
-    def cell(label, key, fmt):
-        text = fmt.format(runs[label][key])
+    def best_of(key, better):
+        finite = [k for k in labels if math.isfinite(get(k, key))]
+        return better(finite, key=lambda k: get(k, key)) if finite else None
+
+    best = {"ssim": best_of("ssim", max), "psnr": best_of("psnr", max), "lpips": best_of("lpips", min)}
+
+    def cell(label, key, spec):
+        v = get(label, key)
+        text = format(v, spec) if math.isfinite(v) else "-"
         return f"**{text}**" if best.get(key) == label else text
 
-    first = runs[labels[0]]
-    conv = first.get("conventions", {})
+    def ratio(a, b):
+        return format(a / b, ".2f") if b and math.isfinite(a / b) else "-"
+
+    first = labels[0]
+    conv = runs[first].get("conventions", {})
     lines = [
         f"# splatzoo compare: {', '.join(labels)}", "",
         f"Scene `{s['scene']}` ({s['train_views']} train / {s['test_views']} test views), {s['iterations']} iterations, "
@@ -132,35 +171,32 @@ def report_markdown(report: dict) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for k in labels:
-        r = runs[k]
-        lines.append(f"| {k} | {cell(k, 'ssim', '{:.4f}')} | {cell(k, 'psnr', '{:.2f}')} | {cell(k, 'lpips', '{:.4f}')} "
-                     f"| {r['fps']:.1f} | {(r.get('train_seconds') or 0):.0f} | {r['size_bytes'] / 1e6:.3f} | {r['num_primitives']} |")
-    lines += ["", f"Against `{labels[0]}`:", "", "| model | ΔPSNR dB | ΔSSIM | ΔLPIPS | FPS ratio | train-time ratio | size ratio |",
+        lines.append(f"| {k} | {cell(k, 'ssim', '.4f')} | {cell(k, 'psnr', '.2f')} | {cell(k, 'lpips', '.4f')} "
+                     f"| {cell(k, 'fps', '.1f')} | {cell(k, 'train_seconds', '.0f')} | "
+                     f"{get(k, 'size_bytes') / 1e6:.3f} | {runs[k].get('num_primitives')} |")
+    lines += ["", f"Against `{first}`:", "", "| model | ΔPSNR dB | ΔSSIM | ΔLPIPS | FPS ratio | train-time ratio | size ratio |",
               "|---|---|---|---|---|---|---|"]
     for k in labels:
-        r = runs[k]
-        ratio = lambda a, b: (a / b) if b else float("nan")  # noqa: E731
-        lines.append(f"| {k} | {r['psnr'] - first['psnr']:+.2f} | {r['ssim'] - first['ssim']:+.4f} | "
-                     f"{r['lpips'] - first['lpips']:+.4f} | {ratio(r['fps'], first['fps']):.2f} | "
-                     f"{ratio(r.get('train_seconds') or 0, first.get('train_seconds') or 0):.2f} | "
-                     f"{ratio(r['size_bytes'], first['size_bytes']):.2f} |")
+        delta = {key: get(k, key) - get(first, key) for key in ("psnr", "ssim", "lpips")}
+        d = {key: format(v, spec) if math.isfinite(v) else "-"
+             for (key, v), spec in zip(delta.items(), ("+.2f", "+.4f", "+.4f"))}
+        lines.append(f"| {k} | {d['psnr']} | {d['ssim']} | {d['lpips']} | {ratio(get(k, 'fps'), get(first, 'fps'))} | "
+                     f"{ratio(get(k, 'train_seconds'), get(first, 'train_seconds'))} | "
+                     f"{ratio(get(k, 'size_bytes'), get(first, 'size_bytes'))} |")
     lines += ["", f"Metrics: PSNR {conv.get('psnr', '')}; SSIM {conv.get('ssim', '')}; LPIPS {conv.get('lpips', '')}.",
               "Pictures: `compare.png` (ground truth, renders, surfels in random colours), `convergence.png`.", ""]
     return "\n".join(lines)
 
 
-def _read_log(run_dir: Path) -> tuple[list, list, list, list]:
+def _read_log(run: Run) -> tuple[list, list, list, list]:
     it, loss, tit, tpsnr = [], [], [], []
-    path = run_dir / "train_log.jsonl"
-    if path.exists():
-        for line in path.read_text().splitlines():
-            rec = json.loads(line)
-            if "loss" in rec:
-                it.append(rec["iteration"])
-                loss.append(rec["loss"])
-            if "test_psnr" in rec:
-                tit.append(rec["iteration"])
-                tpsnr.append(rec["test_psnr"])
+    for rec in run.log():
+        if "loss" in rec:
+            it.append(rec["iteration"])
+            loss.append(rec["loss"])
+        if rec.get("test_psnr") is not None:
+            tit.append(rec["iteration"])
+            tpsnr.append(rec["test_psnr"])
     return it, loss, tit, tpsnr
 
 
@@ -178,7 +214,7 @@ def _save_figure(fig, path: Path) -> None:
         fig.savefig(tmp, dpi=110, bbox_inches="tight")
 
 
-def plot_convergence(run_dirs: dict[str, Path], path) -> None:
+def plot_convergence(run_dirs: dict[str, Run], path) -> None:
     plt = _figure()
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     for label, d in run_dirs.items():
@@ -210,14 +246,13 @@ def random_color_surfels(model, camera, seed: int = 0):
 
 
 @torch.no_grad()
-def plot_comparison(scene, run_dirs: dict[str, Path], path, *, backend: str = "auto", max_views: int = 3) -> None:
+def plot_comparison(scene, run_dirs: dict[str, Run], path, *, backend: str = "auto", max_views: int = 3) -> None:
     from .evaluate import render_view
     from .rasterizers import rasterize
-    from .zoo import load_model
 
     views = (scene.test or scene.train)
     views = views[:: max(1, len(views) // max_views)][:max_views]
-    models = {label: load_model(d / "model.pt") for label, d in run_dirs.items()}
+    models = {label: run.model() for label, run in run_dirs.items()}
     cols = 1 + 2 * len(models)
     plt = _figure()
     fig, axes = plt.subplots(len(views), cols, figsize=(2.4 * cols, 2.5 * len(views)), squeeze=False)

@@ -1,7 +1,7 @@
-"""Evaluation of a trained model: image metrics on the test views, render speed, size; renders and videos."""
+"""Evaluation of a trained model: image metrics on the test views, render speed, size; renders and videos.
+(Runs on disk are loaded and evaluated through splatzoo.runs.)"""
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
-from .io import atomic_path, write_json
-from .rasterizers import rasterize, resolve_backend, select_backend
+from .io import atomic_path
+from .rasterizers import rasterize, resolve_backend
 from .types import Camera
 
 LPIPS_NET = "vgg"
@@ -125,38 +125,6 @@ def save_test_renders(model, scene, out_dir, *, backend: str = "auto", split: st
     return paths
 
 
-def load_run(run_dir, backend: str | None = None):
-    """(model, scene, config record) of a run directory, with a clear error if it is incomplete. With a backend
-    name ("auto" too), the model is placed on the device that backend renders on."""
-    from .data import load_scene
-    from .zoo import load_model
-
-    run_dir = Path(run_dir)
-    cfg_path, model_path = run_dir / "config.json", run_dir / "model.pt"
-    if not cfg_path.is_file():
-        raise SplatzooError(f"{run_dir} is not a splatzoo run (no config.json); pass the --out folder of `splatzoo train`")
-    if not model_path.is_file():
-        hint = " (training was interrupted: finish it with `splatzoo train ... --resume`)" if (run_dir / "checkpoint.pt").exists() else ""
-        raise SplatzooError(f"{run_dir} has no trained model (model.pt){hint}")
-    record = json.loads(cfg_path.read_text())
-    scene = load_scene(record["data"], **record.get("scene_options", {}))
-    model = load_model(model_path)
-    if backend is not None:
-        model = model.to(select_backend(backend).torch_device())
-    return model, scene, record
-
-
-def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str = LPIPS_NET,
-                 lpips_convention: str = LPIPS_CONVENTION) -> dict:
-    run_dir = Path(run_dir)
-    model, scene, record = load_run(run_dir, backend)
-    old = json.loads((run_dir / "metrics.json").read_text()) if (run_dir / "metrics.json").exists() else {}
-    metrics = evaluate(model, scene, backend=backend, train_seconds=old.get("train_seconds"),
-                       iterations=record["train"]["iterations"], lpips_net=lpips_net, lpips_convention=lpips_convention)
-    write_json(run_dir / "metrics.json", metrics)
-    return metrics
-
-
 def orbit_cameras(cameras: list[Camera], frames: int = 60) -> list[Camera]:
     """Cameras on a circle through the mean camera height, looking at the point the cameras look at most."""
     centers = torch.stack([c.center.double() for c in cameras])
@@ -188,39 +156,28 @@ def orbit_cameras(cameras: list[Camera], frames: int = 60) -> list[Camera]:
     return cams
 
 
-def render_run(run_dir, *, split: str = "test", video: bool = False, backend: str = "auto", frames: int = 60) -> list[Path]:
-    """Write the split's renders as PNG (and an orbit video, WebM); returns the written paths."""
-    run_dir = Path(run_dir)
-    model, scene, _ = load_run(run_dir, backend)
-    if split not in ("test", "train"):
-        raise SplatzooError(f"unknown split {split!r}; use test or train")
-    paths = save_test_renders(model, scene, run_dir / "renders", backend=backend, split=split)
-    if video:
-        import cv2
+def write_video(model, cameras: list[Camera], background, path, *, backend: str) -> Path:
+    """Render `cameras` into a video at `path`: WebM (VP9, else VP8) plays in every current browser; OpenCV's
+    wheels carry no H.264 encoder and their mp4 (mp4v) plays in video players only, so it is the last resort
+    (written beside `path` as .mp4). Returns the written path."""
+    import cv2
 
-        backend = resolve_backend(backend, _device(model))
-        cams = orbit_cameras([v.camera for v in scene.train], frames)
-        size = (cams[0].width, cams[0].height)
-        # WebM (VP9, else VP8) plays in every current browser; OpenCV's wheels carry no H.264 encoder, and their
-        # mp4 (mp4v) plays in video players only, so it is the last resort
-        class NoEncoder(Exception):
-            pass
+    size = (cameras[0].width, cameras[0].height)
 
-        for name, fourcc in (("orbit.webm", "VP90"), ("orbit.webm", "VP80"), ("orbit.mp4", "mp4v")):
-            path = run_dir / "renders" / name
-            try:
-                with atomic_path(path, suffix=path.suffix) as tmp:  # an exception inside leaves no file behind
-                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), 30, size)
-                    if not writer.isOpened():
-                        raise NoEncoder
-                    for c in cams:
-                        writer.write(np.ascontiguousarray(to_uint8(render_view(model, c, scene.background,
-                                                                               backend))[..., ::-1]))
-                    writer.release()
-                break
-            except NoEncoder:
-                continue
-        else:
-            raise SplatzooError("OpenCV can write no video format here (VP9, VP8 or mp4v); render PNGs without --video")
-        paths.append(path)
-    return paths
+    class NoEncoder(Exception):
+        pass
+
+    path = Path(path)
+    for target, fourcc in ((path, "VP90"), (path, "VP80"), (path.with_suffix(".mp4"), "mp4v")):
+        try:
+            with atomic_path(target, suffix=target.suffix) as tmp:  # an exception inside leaves no file behind
+                writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), 30, size)
+                if not writer.isOpened():
+                    raise NoEncoder
+                for c in cameras:
+                    writer.write(np.ascontiguousarray(to_uint8(render_view(model, c, background, backend))[..., ::-1]))
+                writer.release()
+            return target
+        except NoEncoder:
+            continue
+    raise SplatzooError("OpenCV can write no video format here (VP9, VP8 or mp4v); render PNGs without --video")

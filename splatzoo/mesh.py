@@ -268,15 +268,16 @@ def write_mesh(mesh, path) -> Path:
 def extract_mesh_from_run(run_dir, out=None, *, backend: str = "auto", progress=None, **options) -> Path:
     """Extract the mesh of a trained run (training cameras) and write it to `out` (default RUN/mesh.ply).
     `options` are those of `extract_mesh`."""
-    from .evaluate import load_run
+    from .runs import Run
 
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise SplatzooError(f"run directory {run_dir} does not exist; pass the --out folder of `splatzoo train`")
-    out = Path(out) if out is not None else run_dir / "mesh.ply"
-    model, scene, _ = load_run(run_dir, backend)
-    mesh, _, _ = extract_mesh(model, [v.camera for v in scene.train], backend=backend, progress=progress, **options)
-    write_mesh(mesh, out)
+    run = Run(run_dir)
+    out = Path(out) if out is not None else run.path / "mesh.ply"
+    if out.suffix.lower() in (".pt", ".json", ".jsonl"):
+        raise SplatzooError(f"{out} is not a mesh file name; use .ply (or .obj/.off/.stl/.glb)")
+    with run.lock("splatzoo extract-mesh"):
+        model, scene, _ = run.load(backend)
+        mesh, _, _ = extract_mesh(model, [v.camera for v in scene.train], backend=backend, progress=progress, **options)
+        write_mesh(mesh, out)
     _say(progress)(f"wrote {out}")
     return out
 

@@ -11,7 +11,7 @@ import json
 import math
 from pathlib import Path
 
-from .compare import QuickPreset, _figure, _save_figure, builtin_scene, compare
+from .compare import ModelChoice, QuickPreset, _figure, _num, _save_figure, builtin_scene, compare
 from .errors import SplatzooError
 from .io import write_json, write_text
 
@@ -37,18 +37,19 @@ def parse_int_list(text, what: str) -> list[int]:
     return values
 
 
-def grid_label(model: str, n_waves: int, options: dict | None = None) -> str:
-    """The compare label of one grid column: `2dgs` for 0 waves, else `gabor:n_waves=4[,opt=value...]`."""
+def grid_choice(model: str, n_waves: int, options: dict | None = None) -> ModelChoice:
+    """The compare entry of one grid column: the `2dgs` model for 0 waves, else `model` with n_waves and the
+    other options (structured, so typed values arrive as they are); its label reads `gabor:n_waves=4[,opt=v]`."""
     if n_waves == 0:
-        return "2dgs"
+        return ModelChoice("2dgs", "2dgs", {})
     extra = "".join(f",{k}={v}" for k, v in (options or {}).items())
-    return f"{model}:n_waves={n_waves}{extra}"
+    return ModelChoice(f"{model}:n_waves={n_waves}{extra}", model, {"n_waves": n_waves, **(options or {})})
 
 
 def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2, 4, 8),
           num_primitives=(1000, 2000, 4000), iterations: int | None = None, quick: bool = False, seed: int = 0,
           backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
-          synthetic_scene: str | None = None, model_options: dict | None = None) -> dict:
+          synthetic_scene: str | None = None, model_options: dict | None = None, overwrite: bool = False) -> dict:
     """Train the grid and write sweep.json, pareto.png and report.md into `out`; returns the sweep.json content.
 
     Without `data` a built-in synthetic scene is rendered (sweater; --quick: 96x96, 16 views). Runs live in
@@ -71,17 +72,20 @@ def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2
     if data is None:
         data = builtin_scene(out, synthetic_scene, preset, seed=seed, progress=progress)
     iterations = iterations or (preset.iterations if preset else 30000)
-    labels = {k: grid_label(model, k, model_options) for k in waves}
+    choices = {k: grid_choice(model, k, model_options) for k in waves}
     points, per_count = [], {}
     for n in counts:
-        report = compare(list(labels.values()), data, out / f"n{n}", iterations=iterations, num_primitives=n,
-                         densify=False, seed=seed, backend=backend, scene_options=scene_options, progress=progress)
+        report = compare(list(choices.values()), data, out / f"n{n}", iterations=iterations, num_primitives=n,
+                         densify=False, seed=seed, backend=backend, scene_options=scene_options, progress=progress,
+                         overwrite=overwrite)
         per_count[n] = report["settings"]
-        for k, label in labels.items():
+        for k, choice in choices.items():
+            label = choice.label
             r = report["runs"][label]
-            fps = r.get("fps") or float("nan")
+            fps = _num(r.get("fps"))
             points.append({"n_waves": k, "num_primitives": n, "model": "2dgs" if k == 0 else model, "label": label,
-                           "psnr": r["psnr"], "ssim": r["ssim"], "lpips": r["lpips"], "fps": fps,
+                           "psnr": _num(r.get("psnr")), "ssim": _num(r.get("ssim")), "lpips": _num(r.get("lpips")),
+                           "fps": fps,
                            "render_ms": 1000.0 / fps if fps and math.isfinite(fps) else float("nan"),
                            "size_bytes": r["size_bytes"], "train_seconds": r.get("train_seconds"),
                            "waves_active": r.get("waves_active"), "run": str(out / f"n{n}" / "runs")})

@@ -220,7 +220,8 @@ def test_densify_and_train_with_pruned_waves():
 
 def test_trainer_prunes_through_the_hook(tmp_path):
     from splatzoo.data.synthetic import make_synthetic_scene
-    from splatzoo.training import TrainConfig, train
+    from splatzoo.runs import train
+    from splatzoo.training import TrainConfig
 
     data = make_synthetic_scene("plain", tmp_path / "plain", views=6, width=32, height=32)
     cfg = TrainConfig(iterations=60, num_primitives=150, densify=False, log_every=10, eval_every=60)

@@ -26,7 +26,8 @@ def trained_run(tmp_path_factory):
     """A short 2DGS training on a small synthetic scene that comes with its true mesh."""
     from splatzoo.data import load_scene
     from splatzoo.data.synthetic import make_synthetic_scene
-    from splatzoo.training import TrainConfig, train
+    from splatzoo.runs import train
+    from splatzoo.training import TrainConfig
 
     root = tmp_path_factory.mktemp("mesh")
     data = make_synthetic_scene("sweater", root / "sweater", views=16, width=96, height=96)
@@ -57,7 +58,7 @@ def test_extracted_mesh_matches_the_true_surface(trained_run, tmp_path):
 
 @pytest.mark.slow
 def test_keep_largest_and_expected_depth(trained_run):
-    from splatzoo.evaluate import load_run
+    from splatzoo.runs import load_run
 
     model, scene, _ = load_run(trained_run[0])
     cams = [v.camera for v in scene.train]

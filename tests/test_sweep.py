@@ -6,7 +6,7 @@ from typer.testing import CliRunner
 
 from splatzoo.cli import app
 from splatzoo.errors import SplatzooError
-from splatzoo.sweep import grid_label, mark_pareto, parse_int_list
+from splatzoo.sweep import grid_choice, mark_pareto, parse_int_list
 
 
 def test_sweep_cli_on_a_tiny_scene(tmp_path):
@@ -38,6 +38,6 @@ def test_pareto_front_and_parsing():
     pts = [{"psnr": 20.0, "c": 1.0}, {"psnr": 22.0, "c": 2.0}, {"psnr": 21.0, "c": 3.0}, {"psnr": 22.0, "c": 2.5}]
     mark_pareto(pts, "c", "front")
     assert [p["front"] for p in pts] == [True, True, False, False]
-    assert parse_int_list("0, 1,4", "x") == [0, 1, 4] and grid_label("gabor", 0) == "2dgs"
+    assert parse_int_list("0, 1,4", "x") == [0, 1, 4] and grid_choice("gabor", 0).model == "2dgs"
     with pytest.raises(SplatzooError, match="integers"):
         parse_int_list("1,a", "--n-waves")

@@ -8,7 +8,8 @@ from typer.testing import CliRunner
 from splatzoo.cli import app
 from splatzoo.data import load_scene
 from splatzoo.errors import SplatzooError
-from splatzoo.training import TrainConfig, train
+from splatzoo.runs import train
+from splatzoo.training import TrainConfig
 from splatzoo.training.losses import depth_to_normal
 from splatzoo import Camera
 

@@ -1,25 +1,19 @@
-"""The training loop: any registered model on any Scene, with the 2DGS recipe (losses, learning rates and
-densification schedule of the official 2DGS code; see TrainConfig).
-
-A run directory holds config.json (fully resolved), checkpoint.pt (latest, written atomically), model.pt
-(final), train_log.jsonl and, after evaluation, metrics.json and renders/.
+"""One training iteration for any registered model on any Scene, with the 2DGS recipe (losses, learning rates and
+densification schedule of the official 2DGS code; see TrainConfig). The loop around it, with its files, lives in
+splatzoo.runs (`splatzoo.runs.train`).
 """
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import torch
 
 from ..errors import SplatzooError
-from ..io import torch_save, write_json, write_text
-from ..rasterizers import rasterize, select_backend
-from ..zoo import create_model, make_config, model_from_checkpoint, save_model
+from ..rasterizers import rasterize
+from ..zoo import create_model, model_from_checkpoint
 from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
 
@@ -29,7 +23,7 @@ REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many itera
 @dataclass
 class TrainConfig:
     iterations: int = 30000
-    backend: str = "auto"
+    backend: str = field(default="auto", metadata={"operational": True})
     seed: int = 0
     densify: bool = True
     num_primitives: int | None = field(default=None, metadata={"help": "start from exactly this many primitives"})
@@ -47,9 +41,30 @@ class TrainConfig:
     densify_grad_threshold: float = 2e-4
     min_opacity: float = 0.05
     opacity_reset_interval: int = 3000
-    checkpoint_every: int = 2000   # iterations (not scaled)
+    checkpoint_every: int = field(default=2000, metadata={"operational": True})     # iterations (not scaled)
+    checkpoint_minutes: float = field(default=5.0, metadata={"operational": True})  # also by time; 0: off
     eval_every: int = 0            # test PSNR every this many iterations; 0: ten times per run
     log_every: int = 10
+
+    def validate(self) -> "TrainConfig":
+        """A clear error for values no run can use (NaN weights, zero iterations, negative counts)."""
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise SplatzooError(f"training option {f.name} must be a finite number, got {v}")
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and v < 0:
+                raise SplatzooError(f"training option {f.name} must not be negative, got {v}")
+        if self.iterations < 1:
+            raise SplatzooError(f"--iterations must be at least 1, got {self.iterations}")
+        for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise SplatzooError(f"training option {name} must be at least 1, got {getattr(self, name)}")
+        return self
+
+    @classmethod
+    def operational_fields(cls) -> set[str]:
+        """Fields that change how a run is executed, not what it computes: they may differ on resume."""
+        return {f.name for f in dataclasses.fields(cls) if f.metadata.get("operational")}
 
     def at(self, reference_iteration: int) -> int:
         """A schedule point stated for 30k iterations, scaled to this run's length."""
@@ -58,13 +73,6 @@ class TrainConfig:
     @property
     def eval_interval(self) -> int:
         return self.eval_every or max(1, self.iterations // 10)
-
-
-@dataclass
-class TrainResult:
-    run_dir: Path
-    model: torch.nn.Module
-    metrics: dict
 
 
 def select_initial_points(points: torch.Tensor, colors: torch.Tensor, n: int | None, seed: int):
@@ -91,192 +99,98 @@ def _position_lr(cfg: TrainConfig, step: int, extent: float) -> float:
     return extent * math.exp(math.log(cfg.position_lr_init) * (1 - t) + math.log(cfg.position_lr_final) * t)
 
 
-class _Progress:
-    """A rich progress bar on a terminal; a line every tenth of the run otherwise (logs, CI)."""
+class Trainer:
+    """The state of one training run (model, optimizer, densification statistics, random generator, position in
+    the view order) and one `step()` of the loop. Files, signals and progress belong to the runs layer
+    (splatzoo.runs); `state_dict()` is everything a checkpoint needs for a bit-identical resume."""
 
-    def __init__(self, total: int, start: int, label: str, enabled: bool):
-        self.total, self.label, self.enabled = total, label, enabled
-        self.bar = None
-        self.last_line = start
-        if enabled and sys.stderr.isatty():
-            from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+    def __init__(self, scene, net, cfg: TrainConfig, backend: str, device: torch.device, state: dict | None = None):
+        self.scene, self.cfg, self.backend, self.device = scene, cfg, backend, device
+        self.net = net.to(device)
+        self.optimizer = torch.optim.Adam(self.net.optim_groups(scene.extent), lr=0.0, eps=1e-15)
+        self.stats = DensifyStats(self.net.num_primitives)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.iteration, self.train_seconds, self.view_order = 0, 0.0, []
+        if state is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
+            self.stats.load_state_dict(state["densify"])
+            self.gen.set_state(state["generator"])
+            self.iteration, self.train_seconds = int(state["iteration"]), float(state["train_seconds"])
+            self.view_order = [int(i) for i in state["view_order"]]
+        self.background = torch.tensor(scene.background, dtype=torch.float32, device=device)
+        self.densify_on = cfg.densify and hasattr(self.net, "logit_opacity")
+        self.d_from, self.d_until = cfg.at(cfg.densify_from), cfg.at(cfg.densify_until)
+        self.d_every = max(cfg.at(cfg.densify_interval), 10)
+        self.reset_every = cfg.at(cfg.opacity_reset_interval)
 
-            self.bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                                TimeRemainingColumn(), TextColumn("{task.fields[info]}"), transient=False)
-            self.task = self.bar.add_task(label, total=total, completed=start, info="")
-            self.bar.start()
-
-    def update(self, step: int, info: str) -> None:
-        if not self.enabled:
-            return
-        if self.bar is not None:
-            self.bar.update(self.task, completed=step, info=info)
-        elif step - self.last_line >= max(1, self.total // 10) or step == self.total:
-            self.last_line = step
-            print(f"[{self.label}] {step}/{self.total} {info}", file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-
-
-def _config_record(data, scene_options: dict, model_name: str, model_config, cfg: TrainConfig, scene) -> dict:
-    return {"data": str(data), "scene_options": scene_options, "model": model_name,
-            "model_config": dataclasses.asdict(model_config), "train": dataclasses.asdict(cfg),
-            "scene": {"name": scene.name, "train_views": len(scene.train), "test_views": len(scene.test),
-                      "extent": scene.extent, "background": list(scene.background)}}
-
-
-def train(scene, model: str = "gabor", model_options: dict | None = None, config: TrainConfig | None = None,
-          out=None, *, resume: bool = False, progress: bool = True, evaluate_at_end: bool = True,
-          stop_after: int | None = None, scene_options: dict | None = None) -> TrainResult:
-    """Train `model` on `scene` (a splatzoo.data.Scene, or a path for load_scene) into run directory `out`.
-
-    resume: continue from out/checkpoint.pt with the run's saved configuration; the result is the same as an
-    uninterrupted run. stop_after: stop (with a checkpoint) after this iteration, as an interruption would.
-    scene_options: the load_scene options (resolution, max_width, test_every, background), recorded so that
-    `splatzoo eval` reloads the same views.
-    """
-    from ..data import load_scene
-
-    scene_options = dict(scene_options or {})
-    if not hasattr(scene, "train"):
-        scene = load_scene(scene, **scene_options)
-    data_path = getattr(scene, "root", "")
-    cfg = config or TrainConfig()
-    out = Path(out or Path("runs") / f"{model}")
-    ckpt_path = out / "checkpoint.pt"
-    state = None
-    if resume:
-        if not ckpt_path.is_file():
-            raise SplatzooError(f"cannot resume: no checkpoint at {ckpt_path}; start the run without --resume")
-        state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        saved = json.loads((out / "config.json").read_text())
-        cfg = TrainConfig(**saved["train"])
-        model = saved["model"]
-        model_options = saved["model_config"]
-    elif ckpt_path.exists():
-        raise SplatzooError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
-    if cfg.iterations < 1:
-        raise SplatzooError(f"--iterations must be at least 1, got {cfg.iterations}")
-    if not scene.train:
-        raise SplatzooError(f"scene {scene.name!r} has no training views")
-
-    chosen = select_backend(cfg.backend)  # the one decision of backend and device for this run
-    backend, device = chosen.name, chosen.torch_device()
-    model_config = make_config(model, **(model_options or {}))
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "config.json", _config_record(data_path, scene_options, model, model_config, cfg, scene))
-
-    gen = torch.Generator().manual_seed(cfg.seed)
-    if state is None:
+    @classmethod
+    def start(cls, scene, model: str, model_config, cfg: TrainConfig, backend: str, device) -> "Trainer":
+        """A fresh run: the model initialised from the scene's points (chosen by the seed)."""
         pts, cols = select_initial_points(scene.points, scene.colors, cfg.num_primitives, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
-        start, train_seconds, view_order = 0, 0.0, []
-    else:
-        net = model_from_checkpoint(state["model"])
-        gen.set_state(state["generator"])
-        start, train_seconds, view_order = state["iteration"], state["train_seconds"], list(state["view_order"])
-    net = net.to(device)
-    groups = net.optim_groups(scene.extent)
-    optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
-    stats = DensifyStats(net.num_primitives)
-    if state is not None:
-        optimizer.load_state_dict(state["optimizer"])
-        stats.load_state_dict(state["densify"])
-        _truncate_log(out / "train_log.jsonl", start)
-    elif (out / "train_log.jsonl").exists():
-        (out / "train_log.jsonl").unlink()
+        return cls(scene, net, cfg, backend, device)
 
-    bg = torch.tensor(scene.background, dtype=torch.float32, device=device)
-    densify_on = cfg.densify and hasattr(net, "logit_opacity")
-    d_from, d_until, d_every = cfg.at(cfg.densify_from), cfg.at(cfg.densify_until), max(cfg.at(cfg.densify_interval), 10)
-    reset_every = cfg.at(cfg.opacity_reset_interval)
-    bar = _Progress(cfg.iterations, start, f"{model}", progress)
-    log = open(out / "train_log.jsonl", "a")
-    ema = None
-    stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
-    try:
-        for step in range(start + 1, stop + 1):
-            t0 = time.perf_counter()
-            if not view_order:
-                view_order = torch.randperm(len(scene.train), generator=gen).tolist()
-            view = scene.train[view_order.pop()]
-            cam = view.camera.to(device, torch.float32)
-            target = view.image_float().to(device)
-            for g in optimizer.param_groups:
-                if g.get("name") == "means":
-                    g["lr"] = _position_lr(cfg, step, scene.extent)
-            render = rasterize(net.surfels(cam), cam, backend=backend, background=bg)
-            l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
-            loss = l_photo
-            if cfg.lambda_normal > 0 and step > cfg.at(cfg.normal_from):
-                loss = loss + cfg.lambda_normal * normal_consistency_loss(render, cam)
-            if cfg.lambda_dist > 0 and step > cfg.at(cfg.dist_from):
-                loss = loss + cfg.lambda_dist * distortion_loss(render)
-            if not torch.isfinite(loss):
-                raise SplatzooError(f"loss became {loss.item()} at iteration {step}; lower the learning rates or "
-                                    f"report the scene (the last checkpoint is {ckpt_path})")
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if densify_on and step <= d_until:
-                stats.accumulate(net, cam)
-            optimizer.step()
-            if densify_on and d_from < step <= d_until:
-                if step % d_every == 0:
-                    # surfels get 100 iterations to recover from an opacity reset before transparent ones go
-                    recovering = step > reset_every and step - (step // reset_every) * reset_every < 100
-                    densify_and_prune(net, optimizer, stats, grad_threshold=cfg.densify_grad_threshold,
-                                      scene_extent=scene.extent, min_opacity=0.0 if recovering else cfg.min_opacity,
-                                      generator=gen,
-                                      max_world_scale=0.1 * scene.extent if step > reset_every else None,
-                                      max_primitives=cfg.max_primitives)
-                if step % reset_every == 0:
-                    reset_opacity(net, optimizer)
-            net.on_step(step, cfg, optimizer)  # model-specific edits (e.g. adaptive waves); no-op by default
-            train_seconds += time.perf_counter() - t0
-            lv = loss.item()
-            ema = lv if ema is None else 0.9 * ema + 0.1 * lv
-            if step % cfg.log_every == 0 or step == cfg.iterations:
-                mse = ((render.rgb.detach() - target) ** 2).mean().item()
-                log.write(json.dumps({"iteration": step, "loss": lv, "photo": l_photo.item(),
-                                      "train_psnr": -10 * math.log10(max(mse, 1e-10)),
-                                      "num_primitives": net.num_primitives, "seconds": round(train_seconds, 3),
-                                      **net.summary()}) + "\n")
-            if scene.test and (step % cfg.eval_interval == 0 or step == cfg.iterations):
-                log.write(json.dumps({"iteration": step, "test_psnr": test_psnr(net, scene, backend)}) + "\n")
-            log.flush()
-            bar.update(step, f"loss {ema:.4f}  {net.num_primitives} prims  {step / max(train_seconds, 1e-9):.1f} it/s")
-            if step % cfg.checkpoint_every == 0 or step == stop:
-                _save_checkpoint(ckpt_path, net, optimizer, stats, gen, step, train_seconds, view_order)
-    finally:
-        log.close()
-        bar.close()
-    metrics = {}
-    if stop == cfg.iterations:
-        save_model(net, out / "model.pt")
-        if evaluate_at_end:
-            from ..evaluate import evaluate, save_test_renders
+    @classmethod
+    def resume(cls, scene, state: dict, cfg: TrainConfig, backend: str, device) -> "Trainer":
+        return cls(scene, model_from_checkpoint(state["model"]), cfg, backend, device, state)
 
-            metrics = evaluate(net, scene, backend=backend, train_seconds=train_seconds, iterations=cfg.iterations)
-            write_json(out / "metrics.json", metrics)
-            save_test_renders(net, scene, out / "renders", backend=backend)
-    return TrainResult(out, net, metrics)
+    def state_dict(self) -> dict:
+        return {"model": self.net.checkpoint(), "optimizer": self.optimizer.state_dict(),
+                "densify": self.stats.state_dict(), "generator": self.gen.get_state(), "iteration": self.iteration,
+                "train_seconds": self.train_seconds, "view_order": list(self.view_order)}
 
-
-def _save_checkpoint(path, net, optimizer, stats, gen, step, train_seconds, view_order) -> None:
-    torch_save({"model": net.checkpoint(), "optimizer": optimizer.state_dict(), "densify": stats.state_dict(),
-                "generator": gen.get_state(), "iteration": step, "train_seconds": train_seconds,
-                "view_order": list(view_order)}, path)
-
-
-def _truncate_log(path: Path, iteration: int) -> None:
-    """Drop log lines written after the checkpoint we resume from (they will be written again)."""
-    if not path.exists():
-        return
-    keep = [line for line in path.read_text().splitlines() if line.strip()
-            and json.loads(line).get("iteration", 0) <= iteration]
-    write_text(path, "".join(line + "\n" for line in keep))
+    def step(self) -> dict:
+        """One iteration; returns {"loss", "photo"} and, on logging iterations, the log records to write."""
+        cfg, net, optimizer, scene = self.cfg, self.net, self.optimizer, self.scene
+        step = self.iteration + 1
+        t0 = time.perf_counter()
+        if not self.view_order:
+            self.view_order = torch.randperm(len(scene.train), generator=self.gen).tolist()
+        view = scene.train[self.view_order.pop()]
+        cam = view.camera.to(self.device, torch.float32)
+        target = view.image_float().to(self.device)
+        for g in optimizer.param_groups:
+            if g.get("name") == "means":
+                g["lr"] = _position_lr(cfg, step, scene.extent)
+        render = rasterize(net.surfels(cam), cam, backend=self.backend, background=self.background)
+        l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
+        loss = l_photo
+        if cfg.lambda_normal > 0 and step > cfg.at(cfg.normal_from):
+            loss = loss + cfg.lambda_normal * normal_consistency_loss(render, cam)
+        if cfg.lambda_dist > 0 and step > cfg.at(cfg.dist_from):
+            loss = loss + cfg.lambda_dist * distortion_loss(render)
+        if not torch.isfinite(loss):
+            raise SplatzooError(f"loss became {loss.item()} at iteration {step}; lower the learning rates or "
+                                "report the scene (the run keeps its last checkpoint)")
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.densify_on and step <= self.d_until:
+            self.stats.accumulate(net, cam)
+        optimizer.step()
+        if self.densify_on and self.d_from < step <= self.d_until:
+            if step % self.d_every == 0:
+                # surfels get 100 iterations to recover from an opacity reset before transparent ones go
+                recovering = step > self.reset_every and step - (step // self.reset_every) * self.reset_every < 100
+                densify_and_prune(net, optimizer, self.stats, grad_threshold=cfg.densify_grad_threshold,
+                                  scene_extent=scene.extent, min_opacity=0.0 if recovering else cfg.min_opacity,
+                                  generator=self.gen,
+                                  max_world_scale=0.1 * scene.extent if step > self.reset_every else None,
+                                  max_primitives=cfg.max_primitives)
+            if step % self.reset_every == 0:
+                reset_opacity(net, optimizer)
+        net.on_step(step, cfg, optimizer)  # model-specific edits (e.g. adaptive waves); no-op by default
+        self.train_seconds += time.perf_counter() - t0
+        self.iteration = step
+        out = {"loss": loss.item(), "photo": l_photo.item(), "records": []}
+        if step % cfg.log_every == 0 or step == cfg.iterations:
+            mse = ((render.rgb.detach() - target) ** 2).mean().item()
+            out["records"].append({"iteration": step, "loss": out["loss"], "photo": out["photo"],
+                                   "train_psnr": -10 * math.log10(max(mse, 1e-10)),
+                                   "num_primitives": net.num_primitives, "seconds": round(self.train_seconds, 3),
+                                   **net.summary()})
+        if scene.test and (step % cfg.eval_interval == 0 or step == cfg.iterations):
+            out["records"].append({"iteration": step, "test_psnr": test_psnr(net, scene, self.backend)})
+        return out
 
 
 @torch.no_grad()

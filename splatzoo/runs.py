@@ -1,0 +1,600 @@
+"""Run folders: the one place that creates, resumes, locks, loads and evaluates a training run.
+
+A run folder holds
+  config.json       what made the run: dataset (absolute path and fingerprint), load options, model and its full
+                    config, training config; resume and reuse happen only when these match
+  checkpoint.pt     the latest training state (written atomically; by iteration, by time and on SIGINT/SIGTERM)
+  model.pt          the trained model (present once training finished)
+  train_log.jsonl   one JSON record per logged iteration
+  metrics.json      evaluation on the test views; renders/ their images; mesh.ply from `extract-mesh`
+  .splatzoo.lock    held (flock) by the one process writing the folder; names that process
+Every file is read safely (torch files with weights_only=True, JSON parsed and checked) and written atomically.
+Commands (train, eval, render, compare, sweep, extract-mesh, export, the viewer) go through `Run`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import signal
+import socket
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from .errors import SplatzooError
+from .io import read_json, read_torch, torch_save, write_json, write_text
+from .training import TrainConfig, Trainer
+
+RUN_FORMAT = 1
+LOCK_NAME = ".splatzoo.lock"
+# everything a run writes; `overwrite` removes exactly these (never a file splatzoo did not write)
+RUN_ENTRIES = ("config.json", "checkpoint.pt", "model.pt", "train_log.jsonl", "metrics.json", "renders", "mesh.ply")
+SCENE_OPTION_DEFAULTS = {"resolution": None, "max_width": None, "test_every": 8, "background": [0.0, 0.0, 0.0]}
+
+
+class RunLockedError(SplatzooError):
+    """Another process is writing the run folder."""
+
+
+class TrainingInterrupted(SplatzooError):
+    """Training stopped on SIGINT/SIGTERM after writing a checkpoint; `exit_code` is the shell's convention."""
+
+    def __init__(self, message: str, exit_code: int):
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+@dataclass
+class TrainResult:
+    run_dir: Path
+    model: torch.nn.Module
+    metrics: dict
+
+
+# --- what made a run --------------------------------------------------------------------------------------------
+
+def normalize_scene_options(options: dict | None) -> dict:
+    """The load_scene options with every default filled in, in JSON form: equal options compare equal."""
+    unknown = set(options or {}) - set(SCENE_OPTION_DEFAULTS)
+    if unknown:
+        raise SplatzooError(f"unknown scene option(s) {', '.join(sorted(unknown))}; known: "
+                            f"{', '.join(SCENE_OPTION_DEFAULTS)}")
+    merged = {**SCENE_OPTION_DEFAULTS, **{k: v for k, v in (options or {}).items() if v is not None}}
+    return json.loads(json.dumps(merged, default=list))
+
+
+def scene_fingerprint(scene) -> str:
+    """A hash of what training sees of a scene: view names, cameras (at the loaded resolution), image file sizes
+    (or in-memory pixels), initial points and background. Cheap (no image is decoded); a dataset copied or moved
+    elsewhere keeps its fingerprint."""
+    h = hashlib.sha256()
+    for split, views in (("train", scene.train), ("test", scene.test)):
+        h.update(f"{split}:{len(views)}".encode())
+        for v in views:
+            c = v.camera
+            h.update(f"{v.name}|{c.width}x{c.height}|".encode())
+            h.update(c.world_to_camera.double().numpy().tobytes() + c.K.double().numpy().tobytes())
+            if v.pixels is not None:
+                h.update(hashlib.sha256(v.pixels.tobytes()).digest())
+            elif v.path is not None:
+                h.update(str(Path(v.path).stat().st_size if Path(v.path).exists() else -1).encode())
+    h.update(scene.points.float().numpy().tobytes() + scene.colors.float().numpy().tobytes())
+    h.update(repr(tuple(float(b) for b in scene.background)).encode())
+    return h.hexdigest()[:32]
+
+
+def make_record(scene, scene_options: dict | None, model: str, model_config, cfg: TrainConfig) -> dict:
+    """config.json of a new run."""
+    from . import __version__
+
+    root = getattr(scene, "root", None)
+    return {"format": RUN_FORMAT, "splatzoo": __version__,
+            "data": str(Path(root).expanduser().resolve()) if root else None,
+            "data_fingerprint": scene_fingerprint(scene),
+            "scene_options": normalize_scene_options(scene_options),
+            "model": model, "model_config": _plain(dataclasses.asdict(model_config)),
+            "train": _plain(dataclasses.asdict(cfg)),
+            "scene": {"name": scene.name, "train_views": len(scene.train), "test_views": len(scene.test),
+                      "extent": scene.extent, "background": list(scene.background)}}
+
+
+def _plain(x):
+    return json.loads(json.dumps(x, default=list))
+
+
+def differences(recorded: dict, wanted: dict) -> list[str]:
+    """What `wanted` (a full or partial record) asks for that the run in `recorded` was not made with. Keys absent
+    from `wanted` are not compared; operational training fields (backend, checkpoint cadence) never conflict."""
+    out = []
+    if wanted.get("data_fingerprint") and recorded.get("data_fingerprint") and \
+            wanted["data_fingerprint"] != recorded["data_fingerprint"]:
+        out.append(f"dataset: {wanted.get('data') or 'the scene given'} is not the dataset the run was trained on "
+                   f"({recorded.get('data')}): views, cameras, image files or points differ")
+    if "model" in wanted and wanted["model"] != recorded.get("model"):
+        out.append(f"model: run has {recorded.get('model')!r}, asked {wanted['model']!r}")
+    operational = TrainConfig.operational_fields()
+    for section in ("model_config", "train", "scene_options"):
+        for key, value in _plain(wanted.get(section, {})).items():
+            if section == "train" and key in operational:
+                continue
+            have = recorded.get(section, {}).get(key, SCENE_OPTION_DEFAULTS.get(key) if section == "scene_options"
+                                                 else None)
+            if have != value:
+                out.append(f"{key}: run has {have!r}, asked {value!r}")
+    return out
+
+
+# --- the run folder ---------------------------------------------------------------------------------------------
+
+class Run:
+    """A run folder and the operations on it. `status` is one of new, foreign (a folder that is not a run),
+    started (config only), interrupted (checkpoint, no model), finished (model.pt)."""
+
+    def __init__(self, path):
+        self.path = Path(path).expanduser().absolute()
+        self.config_path = self.path / "config.json"
+        self.checkpoint_path = self.path / "checkpoint.pt"
+        self.model_path = self.path / "model.pt"
+        self.log_path = self.path / "train_log.jsonl"
+        self.metrics_path = self.path / "metrics.json"
+        self.renders_dir = self.path / "renders"
+        self.lock_path = self.path / LOCK_NAME
+
+    def __repr__(self) -> str:
+        return f"Run({str(self.path)!r}, {self.status})"
+
+    @property
+    def status(self) -> str:
+        if not self.path.exists():
+            return "new"
+        if not self.path.is_dir():
+            return "foreign"
+        if self.model_path.exists():
+            return "finished" if self.config_path.exists() else "foreign"
+        if self.checkpoint_path.exists():
+            return "interrupted" if self.config_path.exists() else "foreign"
+        if self.config_path.exists():
+            return "started"
+        names = [p.name for p in self.path.iterdir() if p.name != LOCK_NAME and not _is_temp(p.name)]
+        return "foreign" if names else "new"
+
+    # reading -------------------------------------------------------------------------------------------------
+    def record(self) -> dict:
+        """config.json, checked: a clear error if it is missing or damaged."""
+        fix = "the run folder is damaged: train again into a new --out (or restore config.json)"
+        rec = read_json(self.config_path, "run configuration", fix)
+        missing = [k for k in ("model", "model_config", "train", "data") if not isinstance(rec, dict) or k not in rec]
+        if missing:
+            raise SplatzooError(f"run configuration {self.config_path} lacks {', '.join(missing)}; {fix}")
+        if not isinstance(rec["train"], dict) or not isinstance(rec["model_config"], dict):
+            raise SplatzooError(f"run configuration {self.config_path} is malformed; {fix}")
+        return rec
+
+    def train_config(self, record: dict | None = None) -> TrainConfig:
+        rec = record or self.record()
+        known = {f.name for f in dataclasses.fields(TrainConfig)}
+        try:
+            return TrainConfig(**{k: v for k, v in rec["train"].items() if k in known}).validate()
+        except TypeError as e:
+            raise SplatzooError(f"run configuration {self.config_path} has an invalid training config ({e})") from None
+
+    def checkpoint(self) -> dict:
+        fix = (f"the checkpoint is damaged and the run cannot resume; delete {self.path} or pass --overwrite to "
+               "train again")
+        state = read_torch(self.checkpoint_path, "checkpoint", fix)
+        need = ("model", "optimizer", "densify", "generator", "iteration", "train_seconds", "view_order")
+        if not isinstance(state, dict) or any(k not in state for k in need):
+            raise SplatzooError(f"checkpoint {self.checkpoint_path} is not a splatzoo training checkpoint; {fix}")
+        return state
+
+    def model(self, backend: str | None = None):
+        """The trained model; with a backend name ("auto" too) on the device that backend renders on."""
+        from .rasterizers import select_backend
+        from .zoo import load_model
+
+        if self.status != "finished":
+            self.require_run()
+            hint = (" (training was interrupted: finish it with `splatzoo train --resume --out "
+                    f"{self.path}`)" if self.checkpoint_path.exists() else "")
+            raise SplatzooError(f"{self.path} has no trained model (model.pt){hint}")
+        model = load_model(self.model_path)
+        return model.to(select_backend(backend).torch_device()) if backend is not None else model
+
+    def scene(self, record: dict | None = None):
+        """The run's dataset with its recorded load options."""
+        from .data import load_scene
+
+        rec = record or self.record()
+        data = rec.get("data")
+        if not data:
+            raise SplatzooError(f"{self.path} was trained on an in-memory scene; it has no dataset to reload")
+        if not Path(data).exists():
+            raise SplatzooError(f"the dataset of {self.path} ({data}) no longer exists; restore it or move it back")
+        opts = dict(rec.get("scene_options", {}))
+        if opts.get("background") is not None:
+            opts["background"] = tuple(opts["background"])
+        return load_scene(data, **{k: v for k, v in opts.items() if v is not None})
+
+    def load(self, backend: str | None = None):
+        """(model, scene, record) of a finished run."""
+        self.require_run()
+        model = self.model(backend)
+        record = self.record()
+        return model, self.scene(record), record
+
+    def metrics(self) -> dict | None:
+        if not self.metrics_path.exists():
+            return None
+        m = read_json(self.metrics_path, "metrics", f"run `splatzoo eval {self.path}` to write them again")
+        if not isinstance(m, dict):
+            raise SplatzooError(f"metrics {self.metrics_path} are malformed; run `splatzoo eval {self.path}`")
+        return m
+
+    def log(self) -> list[dict]:
+        """The training log's records (a damaged line, e.g. cut short by a kill, is skipped)."""
+        if not self.log_path.exists():
+            return []
+        out = []
+        for line in self.log_path.read_text(errors="replace").splitlines():
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(rec, dict) and isinstance(rec.get("iteration"), int):
+                out.append(rec)
+        return out
+
+    def require_run(self) -> None:
+        if not self.path.is_dir():
+            raise SplatzooError(f"run directory {self.path} does not exist; pass the --out folder of `splatzoo train`")
+        if not self.config_path.exists():
+            raise SplatzooError(f"{self.path} is not a splatzoo run (no config.json); pass the --out folder of "
+                                "`splatzoo train`")
+
+    # writing (hold the lock) -----------------------------------------------------------------------------------
+    @contextmanager
+    def lock(self, command: str = "splatzoo", *, create: bool = False):
+        """Exclusive lock on the folder while a process writes it; a second writer gets a RunLockedError that
+        names the first. The lock is released when the process ends, however it ends (flock). Only training
+        creates the folder; other commands need an existing run."""
+        import fcntl
+
+        if not create:
+            self.require_run()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:
+            raise SplatzooError(f"cannot create run folder {self.path}: {e.strerror or e}; choose a writable --out") from None
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "another process"
+                raise RunLockedError(f"{self.path} is in use by {holder}; wait for it to finish or choose another "
+                                     "--out") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"`{command}` (pid {os.getpid()} on {socket.gethostname()}, since "
+                          f"{time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
+            self._remove_stale_temp_files()
+            yield self
+        finally:
+            os.close(fd)  # releases the flock
+
+    def _remove_stale_temp_files(self) -> None:
+        """Temporary files of atomic writes that a kill left behind (only the lock holder writes here)."""
+        for folder in (self.path, self.renders_dir, self.renders_dir / "test", self.renders_dir / "train"):
+            if folder.is_dir():
+                for p in folder.iterdir():
+                    if _is_temp(p.name) and p.is_file():
+                        p.unlink(missing_ok=True)
+
+    def clear(self) -> None:
+        """Remove what a run wrote (for --overwrite); files splatzoo did not write stay."""
+        for name in RUN_ENTRIES:
+            p = self.path / name
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()
+
+    def write_metrics(self, metrics: dict) -> None:
+        write_json(self.metrics_path, metrics)
+
+
+def _is_temp(name: str) -> bool:
+    """A temporary file of io.atomic_path: `.<target name>.<random>`."""
+    return name.startswith(".") and name != LOCK_NAME and any(name.startswith(f".{e}.") for e in RUN_ENTRIES + ("test",)) \
+        or (name.startswith(".") and name.endswith(".png"))
+
+
+# --- training ---------------------------------------------------------------------------------------------------
+
+class _StopSignals:
+    """SIGINT/SIGTERM during training ask the loop to stop after the current iteration (a second SIGINT stops at
+    once). Only the main thread can own signal handlers; elsewhere (a training thread) this does nothing."""
+
+    def __init__(self, say):
+        self.say, self.signum, self.previous = say, None, {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self.previous[s] = signal.signal(s, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self.signum is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.signum = signum
+        self.say(f"{signal.Signals(signum).name}: stopping after this iteration to write a checkpoint "
+                 "(Ctrl-C again to stop at once)")
+
+    def __exit__(self, *exc):
+        for s, h in self.previous.items():
+            signal.signal(s, h)
+
+
+class _Progress:
+    """A rich progress bar on a terminal; a line every tenth of the run otherwise (logs, CI)."""
+
+    def __init__(self, total: int, start: int, label: str, enabled: bool):
+        self.total, self.label, self.enabled = total, label, enabled
+        self.bar = None
+        self.last_line = start
+        if enabled and sys.stderr.isatty():
+            from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self.bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                                TimeRemainingColumn(), TextColumn("{task.fields[info]}"), transient=False)
+            self.task = self.bar.add_task(label, total=total, completed=start, info="")
+            self.bar.start()
+
+    def say(self, message: str) -> None:
+        if self.bar is not None:
+            self.bar.console.print(message)
+        else:
+            print(message, file=sys.stderr, flush=True)
+
+    def update(self, step: int, info: str) -> None:
+        if not self.enabled:
+            return
+        if self.bar is not None:
+            self.bar.update(self.task, completed=step, info=info)
+        elif step - self.last_line >= max(1, self.total // 10) or step == self.total:
+            self.last_line = step
+            print(f"[{self.label}] {step}/{self.total} {info}", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def _asked_record(model, model_options, config, scene_options, recorded_model: str) -> dict:
+    """The partial record a resume request states explicitly (None = not stated)."""
+    asked = {}
+    if model is not None:
+        asked["model"] = model
+    if model_options:
+        from .zoo import make_config
+
+        full = dataclasses.asdict(make_config(model or recorded_model, **model_options))
+        asked["model_config"] = {k: full[k] for k in model_options}
+    if config is not None:
+        asked["train"] = dict(config) if isinstance(config, dict) else dataclasses.asdict(config)
+    if scene_options:
+        asked["scene_options"] = {k: v for k, v in normalize_scene_options(scene_options).items() if k in scene_options}
+    return asked
+
+
+def train(data, model: str | None = None, model_options: dict | None = None, config: TrainConfig | dict | None = None,
+          out=None, *, resume: bool = False, overwrite: bool = False, progress: bool = True,
+          evaluate_at_end: bool = True, stop_after: int | None = None, scene_options: dict | None = None,
+          command: str = "splatzoo train") -> TrainResult:
+    """Train `model` (default gabor) on `data` (a dataset path or a loaded Scene) into the run folder `out`.
+
+    resume: continue the run in `out` with its recorded settings; the result is bit-identical to an uninterrupted
+    run. Options passed with resume must agree with the run (else a clear error): a TrainConfig states every
+    field, a dict only its keys; `data` may be None (the recorded dataset) and must otherwise be the same
+    dataset. overwrite: replace a run in `out`.
+    SIGINT/SIGTERM stop after the current iteration with a checkpoint (TrainingInterrupted); stop_after stops
+    the same way, silently, after that iteration (tests).
+    """
+    from .data import load_scene
+    from .zoo import make_config
+
+    out = Run(out or Path("runs") / (model or "gabor"))
+    if out.status == "foreign":
+        raise SplatzooError(f"{out.path} exists and is not a splatzoo run folder; choose a new or empty --out")
+    if resume and overwrite:
+        raise SplatzooError("--resume continues a run and --overwrite replaces it: pass one of them")
+    with out.lock(command, create=True):
+        status = out.status
+        if resume:
+            if status == "new":
+                raise SplatzooError(f"cannot resume: {out.path} holds no run (no checkpoint); start it without --resume")
+            if status == "finished":
+                raise SplatzooError(f"{out.path} holds a finished run (model.pt); nothing to resume. Evaluate it "
+                                    f"with `splatzoo eval {out.path}` or train into another --out")
+            record = out.record()
+            asked = _asked_record(model, model_options, config, scene_options, record["model"])
+            if data is None:
+                scene = out.scene(record)
+            else:
+                scene = data if hasattr(data, "train") else load_scene(data, **_load_options(record))
+            root = str(Path(scene.root).expanduser().resolve()) if getattr(scene, "root", None) else None
+            asked.update(data=root, data_fingerprint=scene_fingerprint(scene))
+            conflicts = differences(record, asked)
+            if conflicts:
+                raise SplatzooError(f"--resume continues {out.path} with its own settings, but these differ: "
+                                    + "; ".join(conflicts) + ". Resume without them, or train into another --out")
+            model = record["model"]
+            model_config = make_config(model, **record["model_config"])
+            cfg = out.train_config(record)
+            if config is not None:  # operational fields (backend, checkpoint cadence) may change on resume
+                stated = config if isinstance(config, dict) else dataclasses.asdict(config)
+                cfg = dataclasses.replace(cfg, **{k: v for k, v in stated.items()
+                                                  if k in TrainConfig.operational_fields()}).validate()
+            if root and record.get("data") != root:  # the same dataset, moved: remember where it is now
+                record["data"] = root
+                write_json(out.config_path, record)
+            state = out.checkpoint() if out.checkpoint_path.exists() else None
+        else:
+            if data is None:
+                raise SplatzooError("name the dataset to train on (DATA)")
+            # everything that can fail on bad input fails before an old run is replaced
+            model = model or "gabor"
+            model_config = make_config(model, **(model_options or {}))
+            cfg = (TrainConfig(**config) if isinstance(config, dict) else config or TrainConfig()).validate()
+            scene_options = dict(scene_options or {})
+            normalize_scene_options(scene_options)
+            if status != "new" and not overwrite:
+                what = {"finished": "a finished run (model.pt)", "interrupted": "an interrupted run",
+                        "started": "a run that never wrote a checkpoint"}[status]
+                raise SplatzooError(f"{out.path} already holds {what}; pass --resume to continue it, --overwrite "
+                                    "to replace it, or choose another --out")
+            scene = data if hasattr(data, "train") else load_scene(data, **scene_options)
+            if not scene.train:
+                raise SplatzooError(f"scene {scene.name!r} has no training views")
+            out.clear()
+            write_json(out.config_path, make_record(scene, scene_options, model, model_config, cfg))
+            state = None
+        if not scene.train:
+            raise SplatzooError(f"scene {scene.name!r} has no training views")
+        return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
+                           evaluate_at_end=evaluate_at_end, stop_after=stop_after)
+
+
+def _load_options(record: dict) -> dict:
+    opts = dict(record.get("scene_options", {}))
+    if opts.get("background") is not None:
+        opts["background"] = tuple(opts["background"])
+    return {k: v for k, v in opts.items() if v is not None}
+
+
+def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, state, *, progress: bool,
+                evaluate_at_end: bool, stop_after: int | None) -> TrainResult:
+    from .rasterizers import select_backend
+
+    chosen = select_backend(cfg.backend)  # the one decision of backend and device for this run
+    backend, device = chosen.name, chosen.torch_device()
+    if state is None:
+        trainer = Trainer.start(scene, model, model_config, cfg, backend, device)
+    else:
+        trainer = Trainer.resume(scene, state, cfg, backend, device)
+    _truncate_log(run, trainer.iteration)
+    stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
+    bar = _Progress(cfg.iterations, trainer.iteration, model, progress)
+    say = bar.say if progress else (lambda m: print(m, file=sys.stderr, flush=True))
+    ema, last_save = None, time.monotonic()
+
+    def save():
+        nonlocal last_save
+        torch_save(trainer.state_dict(), run.checkpoint_path)
+        last_save = time.monotonic()
+
+    try:
+        with open(run.log_path, "a") as log, _StopSignals(say) as signals:
+            while trainer.iteration < stop:
+                result = trainer.step()
+                step = trainer.iteration
+                for rec in result["records"]:
+                    log.write(json.dumps(rec, allow_nan=False, default=_none_if_nan) + "\n")
+                log.flush()
+                ema = result["loss"] if ema is None else 0.9 * ema + 0.1 * result["loss"]
+                bar.update(step, f"loss {ema:.4f}  {trainer.net.num_primitives} prims  "
+                                 f"{step / max(trainer.train_seconds, 1e-9):.1f} it/s")
+                due = step % cfg.checkpoint_every == 0 or (
+                    cfg.checkpoint_minutes > 0 and time.monotonic() - last_save >= 60 * cfg.checkpoint_minutes)
+                if due or step == stop or signals.signum is not None:
+                    save()
+                if signals.signum is not None and step < cfg.iterations:
+                    name = signal.Signals(signals.signum).name
+                    raise TrainingInterrupted(
+                        f"training stopped by {name} at iteration {step}/{cfg.iterations}; checkpoint written. "
+                        f"Resume with: splatzoo train --resume --out {run.path}", 128 + signals.signum)
+    finally:
+        bar.close()
+    metrics = {}
+    if stop == cfg.iterations:
+        from .zoo import save_model
+
+        save_model(trainer.net, run.model_path)
+        if evaluate_at_end:
+            try:
+                metrics = _evaluate_into(run, trainer.net, scene, backend, train_seconds=trainer.train_seconds,
+                                         iterations=cfg.iterations)
+            except KeyboardInterrupt:
+                raise TrainingInterrupted(f"training finished ({run.model_path} written) but its evaluation was "
+                                          f"interrupted; evaluate with: splatzoo eval {run.path}", 130) from None
+    return TrainResult(run.path, trainer.net, metrics)
+
+
+def _none_if_nan(o):
+    raise TypeError(f"cannot store {type(o).__name__} in the training log")
+
+
+def _truncate_log(run: Run, iteration: int) -> None:
+    """Keep the log records up to the checkpoint we start from (later ones will be written again); a fresh run
+    starts an empty log. Damaged lines (a kill mid-write) go."""
+    keep = [r for r in run.log() if r["iteration"] <= iteration] if iteration else []
+    write_text(run.log_path, "".join(json.dumps(r) + "\n" for r in keep))
+
+
+# --- evaluation and rendering of a run ---------------------------------------------------------------------------
+
+def _evaluate_into(run: Run, model, scene, backend: str, **evaluate_options) -> dict:
+    from .evaluate import evaluate, save_test_renders
+
+    metrics = evaluate(model, scene, backend=backend, **evaluate_options)
+    run.write_metrics(metrics)
+    save_test_renders(model, scene, run.renders_dir, backend=backend)
+    return metrics
+
+
+def load_run(run_dir, backend: str | None = None):
+    """(model, scene, config record) of a finished run; with a backend name ("auto" too), the model is on the
+    device that backend renders on."""
+    return Run(run_dir).load(backend)
+
+
+def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None,
+                 lpips_convention: str | None = None) -> dict:
+    """Evaluate a finished run on its test views and write RUN/metrics.json."""
+    from .evaluate import LPIPS_CONVENTION, LPIPS_NET, evaluate
+
+    run = Run(run_dir)
+    with run.lock("splatzoo eval"):
+        model, scene, record = run.load(backend)
+        old = run.metrics() if run.metrics_path.exists() else None
+        metrics = evaluate(model, scene, backend=backend, train_seconds=(old or {}).get("train_seconds"),
+                           iterations=record["train"].get("iterations"), lpips_net=lpips_net or LPIPS_NET,
+                           lpips_convention=lpips_convention or LPIPS_CONVENTION)
+        run.write_metrics(metrics)
+    return metrics
+
+
+def render_run(run_dir, *, split: str = "test", video: bool = False, backend: str = "auto",
+               frames: int = 60) -> list[Path]:
+    """Write the split's renders as PNG (and an orbit video, WebM) into RUN/renders; returns the written paths."""
+    from .evaluate import orbit_cameras, resolve_backend, save_test_renders, write_video
+
+    if split not in ("test", "train"):
+        raise SplatzooError(f"unknown split {split!r}; use test or train")
+    run = Run(run_dir)
+    with run.lock("splatzoo render"):
+        model, scene, _ = run.load(backend)
+        paths = save_test_renders(model, scene, run.renders_dir, backend=backend, split=split)
+        if video:
+            cams = orbit_cameras([v.camera for v in scene.train], frames)
+            paths.append(write_video(model, cams, scene.background, run.renders_dir / "orbit.webm",
+                                     backend=resolve_backend(backend, next(model.parameters()).device)))
+    return paths

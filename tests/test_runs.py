@@ -1,0 +1,299 @@
+"""Run folders you can trust: safe loading on every command path, no stale or mixed results, one writer at a time,
+interrupts (SIGINT, SIGTERM, SIGKILL) that lose nothing, damaged files named clearly."""
+import errno
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from splatzoo.cli import app
+from splatzoo.errors import SplatzooError
+from splatzoo.runs import Run, RunLockedError, train
+from splatzoo.training import TrainConfig
+
+runner = CliRunner()
+MARKER = "splatzoo_payload_ran"
+
+
+class _Payload:
+    """A pickle that creates a file when unpickled without weights_only."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (Path.touch, (Path(self.marker),))
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    return make_synthetic_scene("sweater", tmp_path_factory.mktemp("data") / "sweater", views=10, width=40, height=40)
+
+
+def cfg(**kw):
+    base = dict(iterations=12, backend="cpu", num_primitives=150, log_every=2, eval_every=6, seed=5)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def quick_train(data, out, model="2dgs", **kw):
+    kw.setdefault("evaluate_at_end", False)
+    return train(data, model, {}, kw.pop("config", cfg()), out, progress=False, **kw)
+
+
+def assert_same_parameters(a, b):
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        assert torch.equal(sa[k], sb[k]), k
+
+
+# --- crafted files never run code ------------------------------------------------------------------------------
+
+def test_crafted_files_run_no_code_on_any_command(tiny_data, tmp_path):
+    marker = tmp_path / MARKER
+    payload = {"model": _Payload(marker), "optimizer": {}, "densify": {}, "generator": torch.zeros(1),
+               "iteration": 3, "train_seconds": 0.0, "view_order": []}
+    # train --resume on a crafted checkpoint
+    run = tmp_path / "resume"
+    quick_train(tiny_data, run, stop_after=2)
+    torch.save(payload, run / "checkpoint.pt")
+    r = runner.invoke(app, ["train", "--resume", "--out", str(run)])
+    assert r.exit_code != 0 and isinstance(r.exception, SplatzooError) and "checkpoint" in str(r.exception)
+    # compare resumes on its own: the crafted checkpoint of a matching run must be refused too
+    out = tmp_path / "cmp"
+    r = runner.invoke(app, ["compare", "2dgs", "--data", str(tiny_data), "--out", str(out), "--iterations", "4",
+                            "--num-primitives", "50", "--backend", "cpu"])
+    assert r.exit_code == 0, r.output
+    os.remove(out / "runs" / "2dgs" / "model.pt")
+    torch.save(payload, out / "runs" / "2dgs" / "checkpoint.pt")
+    r = runner.invoke(app, ["compare", "2dgs", "--data", str(tiny_data), "--out", str(out), "--iterations", "4",
+                            "--num-primitives", "50", "--backend", "cpu"])
+    assert r.exit_code != 0 and isinstance(r.exception, SplatzooError)
+    # a crafted model.pt under eval, render, extract-mesh and export
+    done = tmp_path / "done"
+    quick_train(tiny_data, done)
+    torch.save({"model": "2dgs", "config": {}, "state": _Payload(marker)}, done / "model.pt")
+    for args in (["eval", str(done)], ["render", str(done)], ["extract-mesh", str(done)],
+                 ["export", str(done), "--out", str(tmp_path / "x.ply")]):
+        r = runner.invoke(app, args)
+        assert r.exit_code != 0 and isinstance(r.exception, SplatzooError), (args, r.output)
+        assert "model" in str(r.exception)
+    assert not marker.exists()
+
+
+# --- what made a run: reuse and resume only when it matches --------------------------------------------------------
+
+def test_compare_never_reports_old_numbers(tiny_data, tmp_path):
+    out = tmp_path / "cmp"
+    base = ["compare", "2dgs", "--data", str(tiny_data), "--out", str(out), "--num-primitives", "50", "--backend", "cpu"]
+    assert runner.invoke(app, base + ["--iterations", "4"]).exit_code == 0
+    first = json.loads((out / "compare.json").read_text())["runs"]["2dgs"]
+    # the same settings again: the finished run is reused, its numbers unchanged
+    assert runner.invoke(app, base + ["--iterations", "4"]).exit_code == 0
+    assert json.loads((out / "compare.json").read_text())["runs"]["2dgs"] == first
+    # other settings: a clear error, nothing trained, compare.json untouched
+    r = runner.invoke(app, base + ["--iterations", "6"])
+    assert r.exit_code != 0 and "iterations" in str(r.exception) and "--overwrite" in str(r.exception)
+    assert json.loads((out / "compare.json").read_text())["runs"]["2dgs"] == first
+    # ... and with --overwrite the run is trained again with the new settings
+    r = runner.invoke(app, base + ["--iterations", "6", "--overwrite"])
+    assert r.exit_code == 0, r.output
+    report = json.loads((out / "compare.json").read_text())
+    assert report["settings"]["iterations"] == 6 and report["runs"]["2dgs"]["iterations"] == 6
+    # other data with the same name of run folder: the fingerprint tells them apart
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    other = make_synthetic_scene("vest", tmp_path / "vest", views=10, width=40, height=40)
+    r = runner.invoke(app, ["compare", "2dgs", "--data", str(other), "--out", str(out), "--num-primitives", "50",
+                            "--backend", "cpu", "--iterations", "6"])
+    assert r.exit_code != 0 and "dataset" in str(r.exception)
+
+
+def test_resume_takes_its_settings_from_the_run(tiny_data, tmp_path):
+    run = tmp_path / "run"
+    r = runner.invoke(app, ["train", str(tiny_data), "--model", "2dgs", "--iterations", "8", "--num-primitives", "80",
+                            "--backend", "cpu", "--out", str(run)])
+    assert r.exit_code == 0, r.output
+    os.remove(run / "model.pt")  # as if it had been interrupted after its last checkpoint...
+    quick_train(tiny_data, tmp_path / "other")
+    config_before = (run / "config.json").read_bytes()
+    for extra, what in ((["--iterations", "9"], "iterations"), (["--model", "gabor"], "model"),
+                        (["--resolution", "2"], "resolution"), (["--num-primitives", "81"], "num_primitives")):
+        r = runner.invoke(app, ["train", "--resume", "--out", str(run)] + extra)
+        assert r.exit_code != 0 and what in str(r.exception), (extra, r.output)
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    other = make_synthetic_scene("vest", tmp_path / "vest", views=10, width=40, height=40)
+    r = runner.invoke(app, ["train", str(other), "--resume", "--out", str(run)])
+    assert r.exit_code != 0 and "dataset" in str(r.exception)
+    assert (run / "config.json").read_bytes() == config_before
+    # agreeing options and an operational change (the backend) are fine; the closing line names the run's model
+    r = runner.invoke(app, ["train", str(tiny_data), "--resume", "--out", str(run), "--iterations", "8",
+                            "--backend", "reference"])
+    assert r.exit_code == 0, r.output
+    assert r.output.strip().splitlines()[-1].startswith("2dgs:")
+
+
+def test_data_path_is_absolute_so_runs_work_from_anywhere(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.chdir(tiny_data.parent)
+    quick_train(Path(tiny_data.name), tmp_path / "run")
+    record = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert Path(record["data"]).is_absolute() and record["data_fingerprint"]
+    monkeypatch.chdir(tmp_path)
+    r = runner.invoke(app, ["render", str(tmp_path / "run")])
+    assert r.exit_code == 0, r.output
+
+
+# --- one writer at a time; runs are never silently replaced -------------------------------------------------------
+
+def test_a_second_writer_is_refused_and_names_the_first(tiny_data, tmp_path):
+    run = tmp_path / "run"
+    with Run(run).lock("splatzoo train (the first)", create=True):
+        with pytest.raises(RunLockedError, match=f"the first.*pid {os.getpid()}"):
+            quick_train(tiny_data, run)
+    assert not (run / "config.json").exists()
+    quick_train(tiny_data, run)  # the lock went with its holder
+
+
+def test_a_finished_run_is_not_overwritten(tiny_data, tmp_path):
+    run = tmp_path / "run"
+    quick_train(tiny_data, run)
+    os.remove(run / "checkpoint.pt")  # a finished run need not keep its checkpoint
+    model = (run / "model.pt").read_bytes()
+    with pytest.raises(SplatzooError, match="finished run"):
+        quick_train(tiny_data, run)
+    r = runner.invoke(app, ["train", str(tiny_data), "--out", str(run), "--iterations", "3"])
+    assert r.exit_code != 0 and "--overwrite" in str(r.exception)
+    assert (run / "model.pt").read_bytes() == model
+    with pytest.raises(SplatzooError, match="not a splatzoo run"):
+        quick_train(tiny_data, tiny_data)  # a dataset folder is not a run folder
+    quick_train(tiny_data, run, overwrite=True, config=cfg(iterations=3))
+    assert json.loads((run / "config.json").read_text())["train"]["iterations"] == 3
+
+
+# --- interrupts lose nothing -------------------------------------------------------------------------------------
+
+KILL_RUN = dict(iterations=300, num_primitives=150, backend="cpu", checkpoint_every=25)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tiny_data, tmp_path_factory):
+    return train(tiny_data, "gabor", {}, TrainConfig(**KILL_RUN), tmp_path_factory.mktemp("ref") / "run",
+                 progress=False, evaluate_at_end=False).model
+
+
+def _train_cmd(data, out):
+    return [sys.executable, "-m", "splatzoo.cli", "train", str(data), "--model", "gabor", "--out", str(out)] + \
+        [a for k, v in KILL_RUN.items() for a in (f"--{k.replace('_', '-')}", str(v))]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL])
+def test_killed_training_resumes_bit_identically(tiny_data, tmp_path, signum, uninterrupted):
+    run = tmp_path / "run"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(_train_cmd(tiny_data, run), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env)
+    deadline = time.monotonic() + 120
+    while not (run / "train_log.jsonl").exists() or not (run / "train_log.jsonl").read_text():
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[0]
+        time.sleep(0.05)
+    time.sleep(random.Random(int(signum)).uniform(0.0, 1.5))  # a random moment of the run
+    proc.send_signal(signum)
+    output, _ = proc.communicate(timeout=120)
+    if proc.returncode == 0:
+        pytest.fail("training finished before the signal arrived; make the run longer")
+    assert proc.returncode == (-9 if signum == signal.SIGKILL else 128 + signum), output
+    if signum != signal.SIGKILL:
+        assert "--resume" in output and "Traceback" not in output and "stack trace" not in output, output
+        assert (run / "checkpoint.pt").exists()
+    assert not (run / "model.pt").exists()
+    r = subprocess.run([sys.executable, "-m", "splatzoo.cli", "train", "--resume", "--out", str(run)],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    from splatzoo import load_model
+
+    assert_same_parameters(uninterrupted, load_model(run / "model.pt"))
+    assert not [p for p in run.iterdir() if p.name.startswith(".checkpoint")]
+
+
+def test_checkpoints_by_time_and_stale_temp_files(tiny_data, tmp_path, monkeypatch):
+    import splatzoo.runs as runs
+
+    saves = []
+    real = runs.torch_save
+    monkeypatch.setattr(runs, "torch_save", lambda obj, path: (saves.append(obj["iteration"]), real(obj, path)))
+    quick_train(tiny_data, tmp_path / "timed", config=cfg(checkpoint_every=1000, checkpoint_minutes=1e-9))
+    assert saves == list(range(1, 13))
+    saves.clear()
+    quick_train(tiny_data, tmp_path / "untimed", config=cfg(checkpoint_every=1000, checkpoint_minutes=0))
+    assert saves == [12]
+    run = tmp_path / "part"
+    quick_train(tiny_data, run, stop_after=5)
+    stale = run / ".checkpoint.pt.k1ll3d.pt"
+    stale.write_bytes(b"half a checkpoint")
+    quick_train(tiny_data, run, resume=True)
+    assert not stale.exists() and (run / "model.pt").exists()
+
+
+# --- damaged files and bad values ----------------------------------------------------------------------------------
+
+def test_damaged_files_give_clear_errors(tiny_data, tmp_path):
+    run = tmp_path / "run"
+    quick_train(tiny_data, run, stop_after=6)
+    good = (run / "checkpoint.pt").read_bytes()
+    for damaged in (b"", good[: len(good) // 2], b"not a zip at all"):
+        (run / "checkpoint.pt").write_bytes(damaged)
+        with pytest.raises(SplatzooError, match="checkpoint"):
+            quick_train(tiny_data, run, resume=True)
+    (run / "checkpoint.pt").write_bytes(good)
+    # a log line cut short by a kill is dropped on resume
+    with open(run / "train_log.jsonl", "a") as f:
+        f.write('{"iteration": 7, "lo')
+    config = (run / "config.json").read_text()
+    (run / "config.json").write_text(config[:40])
+    with pytest.raises(SplatzooError, match="config.json"):
+        quick_train(tiny_data, run, resume=True)
+    r = runner.invoke(app, ["eval", str(run)])
+    assert r.exit_code != 0 and isinstance(r.exception, SplatzooError)
+    (run / "config.json").write_text(config)
+    quick_train(tiny_data, run, resume=True)
+    log = Run(run).log()
+    assert [rec["iteration"] for rec in log if "loss" in rec] == list(range(2, 13, 2))
+    assert all(json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines())
+
+
+def test_bad_values_and_full_disk(tiny_data, tmp_path, monkeypatch):
+    for bad in ("nan", "inf", "-1"):
+        r = runner.invoke(app, ["train", str(tiny_data), "--lambda-normal", bad, "--out", str(tmp_path / bad)])
+        assert r.exit_code != 0 and "lambda_normal" in str(r.exception), r.output
+        assert not (tmp_path / bad / "config.json").exists()
+    # metrics are strict JSON: a non-finite number is null, never `Infinity`
+    from splatzoo.io import write_json
+
+    write_json(tmp_path / "m.json", {"psnr": float("inf"), "x": [float("nan")]})
+    assert json.loads((tmp_path / "m.json").read_text(), parse_constant=lambda c: pytest.fail(c)) == \
+        {"psnr": None, "x": [None]}
+    # a full disk while checkpointing: a clear error, and the previous checkpoint stays intact
+    run = tmp_path / "disk"
+    quick_train(tiny_data, run, stop_after=4)
+    before = (run / "checkpoint.pt").read_bytes()
+
+    def full(obj, path):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(SplatzooError, match="No space left"):
+        quick_train(tiny_data, run, resume=True)
+    assert (run / "checkpoint.pt").read_bytes() == before
+    assert [p.name for p in run.iterdir() if p.name.startswith(".checkpoint")] == []
