@@ -399,22 +399,20 @@ def load_ply(path):
 
 
 def export_run(run, out) -> Path:
-    """Export the trained model of a run directory (its model.pt), or a model .pt file, to the PLY `out`."""
+    """Export the trained model of a run directory (through splatzoo.runs.Run), or a model .pt file, to the PLY
+    `out`."""
+    from .runs import Run
     from .zoo import load_model
 
     run = Path(run)
     if run.is_file():
-        model_path = run
-    elif run.is_dir():
-        model_path = run / "model.pt"
-        if not model_path.is_file():
-            hint = (" (training was interrupted: finish it with `splatzoo train ... --resume`)"
-                    if (run / "checkpoint.pt").exists() else "; pass the --out folder of `splatzoo train`")
-            raise SplatzooError(f"{run} has no trained model (model.pt){hint}")
-    else:
+        _check_export_target(run, Path(out))
+        return save_ply(load_model(run), out)
+    if not run.exists():
         raise SplatzooError(f"{run} does not exist; pass a run directory written by `splatzoo train` or a model .pt")
-    _check_export_target(model_path, Path(out))
-    return save_ply(load_model(model_path), out)
+    r = Run(run)
+    _check_export_target(r.model_path, Path(out))
+    return save_ply(r.model(), out)
 
 
 def _check_export_target(model_path: Path, out: Path) -> None:

@@ -47,6 +47,11 @@ def write_json(path, data) -> None:
         tmp.write_text(json.dumps(_finite(data), indent=2, sort_keys=False, default=_jsonable, allow_nan=False) + "\n")
 
 
+def json_line(record) -> str:
+    """One strict-JSON line (a log record): non-finite numbers as null."""
+    return json.dumps(_finite(record), default=_jsonable, allow_nan=False) + "\n"
+
+
 def read_json(path, what: str, fix: str) -> object:
     """Parse a JSON file we wrote; a missing, unreadable or malformed one is a SplatzooError that says `fix`."""
     path = Path(path)

@@ -14,9 +14,11 @@ Commands (train, eval, render, compare, sweep, extract-mesh, export, the viewer)
 from __future__ import annotations
 
 import dataclasses
+import errno
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -30,7 +32,7 @@ from pathlib import Path
 import torch
 
 from .errors import SplatzooError
-from .io import read_json, read_torch, torch_save, write_json, write_text
+from .io import json_line, read_json, read_torch, torch_save, write_json, write_text
 from .training import TrainConfig, Trainer
 
 RUN_FORMAT = 1
@@ -310,10 +312,12 @@ class Run:
         write_json(self.metrics_path, metrics)
 
 
+_TEMP = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.[A-Za-z0-9]+)?$")
+
+
 def _is_temp(name: str) -> bool:
-    """A temporary file of io.atomic_path: `.<target name>.<random>`."""
-    return name.startswith(".") and name != LOCK_NAME and any(name.startswith(f".{e}.") for e in RUN_ENTRIES + ("test",)) \
-        or (name.startswith(".") and name.endswith(".png"))
+    """A temporary file of io.atomic_path: `.<target name>.<8 random characters>[.<suffix>]`."""
+    return name != LOCK_NAME and bool(_TEMP.match(name))
 
 
 # --- training ---------------------------------------------------------------------------------------------------
@@ -489,7 +493,11 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     if state is None:
         trainer = Trainer.start(scene, model, model_config, cfg, backend, device)
     else:
-        trainer = Trainer.resume(scene, state, cfg, backend, device)
+        try:
+            trainer = Trainer.resume(scene, state, cfg, backend, device)
+        except (KeyError, ValueError, TypeError, RuntimeError, IndexError) as e:
+            raise SplatzooError(f"checkpoint {run.checkpoint_path} does not hold a consistent training state ({e}); "
+                                f"delete {run.path} or pass --overwrite to train again") from None
     _truncate_log(run, trainer.iteration)
     stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
     bar = _Progress(cfg.iterations, trainer.iteration, model, progress)
@@ -507,7 +515,7 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
                 result = trainer.step()
                 step = trainer.iteration
                 for rec in result["records"]:
-                    log.write(json.dumps(rec, allow_nan=False, default=_none_if_nan) + "\n")
+                    log.write(json_line(rec))
                 log.flush()
                 ema = result["loss"] if ema is None else 0.9 * ema + 0.1 * result["loss"]
                 bar.update(step, f"loss {ema:.4f}  {trainer.net.num_primitives} prims  "
@@ -521,6 +529,11 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
                     raise TrainingInterrupted(
                         f"training stopped by {name} at iteration {step}/{cfg.iterations}; checkpoint written. "
                         f"Resume with: splatzoo train --resume --out {run.path}", 128 + signals.signum)
+    except OSError as e:  # the training log on a full disk (checkpoints say so themselves, through io)
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG):
+            raise
+        raise SplatzooError(f"cannot write to {run.path}: {e.strerror}. Free disk space, then resume with: "
+                            f"splatzoo train --resume --out {run.path} (the last checkpoint is kept)") from None
     finally:
         bar.close()
     metrics = {}
@@ -538,15 +551,11 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     return TrainResult(run.path, trainer.net, metrics)
 
 
-def _none_if_nan(o):
-    raise TypeError(f"cannot store {type(o).__name__} in the training log")
-
-
 def _truncate_log(run: Run, iteration: int) -> None:
     """Keep the log records up to the checkpoint we start from (later ones will be written again); a fresh run
     starts an empty log. Damaged lines (a kill mid-write) go."""
     keep = [r for r in run.log() if r["iteration"] <= iteration] if iteration else []
-    write_text(run.log_path, "".join(json.dumps(r) + "\n" for r in keep))
+    write_text(run.log_path, "".join(json_line(r) for r in keep))
 
 
 # --- evaluation and rendering of a run ---------------------------------------------------------------------------

@@ -240,7 +240,7 @@ def test_checkpoints_by_time_and_stale_temp_files(tiny_data, tmp_path, monkeypat
     assert saves == [12]
     run = tmp_path / "part"
     quick_train(tiny_data, run, stop_after=5)
-    stale = run / ".checkpoint.pt.k1ll3d.pt"
+    stale = run / ".checkpoint.pt.k1ll3d_x.pt"
     stale.write_bytes(b"half a checkpoint")
     quick_train(tiny_data, run, resume=True)
     assert not stale.exists() and (run / "model.pt").exists()
@@ -256,6 +256,11 @@ def test_damaged_files_give_clear_errors(tiny_data, tmp_path):
         (run / "checkpoint.pt").write_bytes(damaged)
         with pytest.raises(SplatzooError, match="checkpoint"):
             quick_train(tiny_data, run, resume=True)
+    (run / "checkpoint.pt").write_bytes(good)
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    torch.save({**state, "optimizer": {"state": {}, "param_groups": [{"params": [99]}]}}, run / "checkpoint.pt")
+    with pytest.raises(SplatzooError, match="consistent training state"):
+        quick_train(tiny_data, run, resume=True)
     (run / "checkpoint.pt").write_bytes(good)
     # a log line cut short by a kill is dropped on resume
     with open(run / "train_log.jsonl", "a") as f:

@@ -324,4 +324,4 @@ def test_export_never_overwrites_the_model(tmp_path):
     with pytest.raises(SplatzooError, match="refusing to export onto the model being read"):
         export_run(odd, odd)
     assert odd.read_bytes() == before
-    assert export_run(run, tmp_path / "model.PLY").is_file()
+    assert export_run(run / "model.pt", tmp_path / "model.PLY").is_file()
