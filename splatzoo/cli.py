@@ -146,7 +146,7 @@ _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, refer
 
 
 _TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "num_primitives", "max_primitives", "lambda_dist",
-                 "lambda_normal", "checkpoint_every", "checkpoint_minutes")
+                 "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc")
 
 
 def _given(ctx: typer.Context) -> set[str]:
@@ -179,6 +179,10 @@ def train_command(
     checkpoint_every: int = typer.Option(2000, "--checkpoint-every", help="write a checkpoint every N iterations"),
     checkpoint_minutes: float = typer.Option(5.0, "--checkpoint-minutes",
                                              help="also write one every M minutes (0: off); Ctrl-C always writes one"),
+    batch_size: int = typer.Option(1, "--batch-size", help="views per step on each process (learning rates x "
+                                   "sqrt(views per step), Adam betas to that power)"),
+    nproc: int = typer.Option(1, "--nproc", help="data-parallel processes (torch.distributed: gloo on CPU, NCCL "
+                              "on CUDA); each renders --batch-size views per step"),
 ) -> None:
     """Train a model on a dataset. Model options follow the model name, e.g. `--model gabor --n-waves 8`.
 

@@ -339,8 +339,9 @@ class _StopSignals:
         if self.signum is not None and signum == signal.SIGINT:
             raise KeyboardInterrupt
         self.signum = signum
-        self.say(f"{signal.Signals(signum).name}: stopping after this iteration to write a checkpoint "
-                 "(Ctrl-C again to stop at once)")
+        if self.say is not None:
+            self.say(f"{signal.Signals(signum).name}: stopping after this iteration to write a checkpoint "
+                     "(Ctrl-C again to stop at once)")
 
     def __exit__(self, *exc):
         for s, h in self.previous.items():
@@ -473,6 +474,9 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
             state = None
         if not scene.train:
             raise SplatzooError(f"scene {scene.name!r} has no training views")
+        if cfg.nproc > 1:
+            return _spawn_ranks(out, scene, model, model_config, cfg, state is not None, progress=progress,
+                                evaluate_at_end=evaluate_at_end, stop_after=stop_after)
         return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
                            evaluate_at_end=evaluate_at_end, stop_after=stop_after)
 
@@ -485,32 +489,40 @@ def _load_options(record: dict) -> dict:
 
 
 def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, state, *, progress: bool,
-                evaluate_at_end: bool, stop_after: int | None) -> TrainResult:
+                evaluate_at_end: bool, stop_after: int | None, comm=None) -> TrainResult:
+    """The loop around Trainer.step: logs, checkpoints (by iteration, by time, on SIGINT/SIGTERM), the final
+    model and its evaluation. With several ranks every rank runs it and rank 0 alone writes."""
     from .rasterizers import select_backend
+    from .training.distributed import Comm
 
+    comm = comm or Comm()
+    writer = comm.rank == 0
     chosen = select_backend(cfg.backend)  # the one decision of backend and device for this run
     backend, device = chosen.name, chosen.torch_device()
-    if state is None:
-        trainer = Trainer.start(scene, model, model_config, cfg, backend, device)
-    else:
-        try:
-            trainer = Trainer.resume(scene, state, cfg, backend, device)
-        except (KeyError, ValueError, TypeError, RuntimeError, IndexError) as e:
-            raise SplatzooError(f"checkpoint {run.checkpoint_path} does not hold a consistent training state ({e}); "
-                                f"delete {run.path} or pass --overwrite to train again") from None
-    _truncate_log(run, trainer.iteration)
+    try:
+        if state is None:
+            trainer = Trainer.start(scene, model, model_config, cfg, backend, device, comm=comm)
+        else:
+            trainer = Trainer.resume(scene, state, cfg, backend, device, comm=comm)
+    except (KeyError, ValueError, TypeError, RuntimeError, IndexError) as e:
+        raise SplatzooError(f"checkpoint {run.checkpoint_path} does not hold a consistent training state ({e}); "
+                            f"delete {run.path} or pass --overwrite to train again") from None
+    if writer:
+        _truncate_log(run, trainer.iteration)
     stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
-    bar = _Progress(cfg.iterations, trainer.iteration, model, progress)
+    bar = _Progress(cfg.iterations, trainer.iteration, model, progress and writer)
     say = bar.say if progress else (lambda m: print(m, file=sys.stderr, flush=True))
     ema, last_save = None, time.monotonic()
 
     def save():
         nonlocal last_save
-        torch_save(trainer.state_dict(), run.checkpoint_path)
+        state = trainer.state_dict()  # every rank: it sums the densification statistics
+        if writer:
+            torch_save(state, run.checkpoint_path)
         last_save = time.monotonic()
 
     try:
-        with open(run.log_path, "a") as log, _StopSignals(say) as signals:
+        with open(run.log_path if writer else os.devnull, "a") as log, _StopSignals(say if writer else None) as signals:
             while trainer.iteration < stop:
                 result = trainer.step()
                 step = trainer.iteration
@@ -520,15 +532,18 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
                 ema = result["loss"] if ema is None else 0.9 * ema + 0.1 * result["loss"]
                 bar.update(step, f"loss {ema:.4f}  {trainer.net.num_primitives} prims  "
                                  f"{step / max(trainer.train_seconds, 1e-9):.1f} it/s")
-                due = step % cfg.checkpoint_every == 0 or (
+                # ranks agree on every decision: a signal or a clock seen by one rank stops or saves them all
+                stopping = comm.any(signals.signum is not None)
+                due = step % cfg.checkpoint_every == 0 or comm.any(
                     cfg.checkpoint_minutes > 0 and time.monotonic() - last_save >= 60 * cfg.checkpoint_minutes)
-                if due or step == stop or signals.signum is not None:
+                if due or step == stop or stopping:
                     save()
-                if signals.signum is not None and step < cfg.iterations:
-                    name = signal.Signals(signals.signum).name
+                if stopping and step < cfg.iterations:
+                    comm.barrier()  # the checkpoint is on disk before any rank exits
+                    signum = signals.signum or signal.SIGTERM
                     raise TrainingInterrupted(
-                        f"training stopped by {name} at iteration {step}/{cfg.iterations}; checkpoint written. "
-                        f"Resume with: splatzoo train --resume --out {run.path}", 128 + signals.signum)
+                        f"training stopped by {signal.Signals(signum).name} at iteration {step}/{cfg.iterations}; "
+                        f"checkpoint written. Resume with: splatzoo train --resume --out {run.path}", 128 + signum)
     except OSError as e:  # the training log on a full disk (checkpoints say so themselves, through io)
         if e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG):
             raise
@@ -537,7 +552,7 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     finally:
         bar.close()
     metrics = {}
-    if stop == cfg.iterations:
+    if stop == cfg.iterations and writer:
         from .zoo import save_model
 
         save_model(trainer.net, run.model_path)
@@ -549,6 +564,96 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
                 raise TrainingInterrupted(f"training finished ({run.model_path} written) but its evaluation was "
                                           f"interrupted; evaluate with: splatzoo eval {run.path}", 130) from None
     return TrainResult(run.path, trainer.net, metrics)
+
+
+# --- several processes -------------------------------------------------------------------------------------------
+
+def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, resume: bool, *, progress: bool,
+                 evaluate_at_end: bool, stop_after: int | None) -> TrainResult:
+    """Train on cfg.nproc processes (torch.distributed: gloo on CPU, NCCL on CUDA) while this process holds the
+    run's lock. Ctrl-C reaches every rank from the terminal; SIGTERM to this process is passed on. A rank that
+    fails or dies ends the run with a clear error; the last checkpoint stays."""
+    import socket as socket_module
+
+    import torch.multiprocessing as mp
+
+    with socket_module.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    ctx = mp.start_processes(_rank_main, nprocs=cfg.nproc, join=False, start_method="spawn",
+                             args=(cfg.nproc, port, str(run.path), scene, model, dataclasses.asdict(model_config),
+                                   dataclasses.asdict(cfg), resume, progress, evaluate_at_end, stop_after))
+    pids = [p.pid for p in ctx.processes]
+
+    def forward(signum, frame):
+        for pid in pids:
+            try:
+                os.kill(pid, signum)
+            except ProcessLookupError:
+                pass
+
+    previous = {s: signal.signal(s, forward if s == signal.SIGTERM else signal.SIG_IGN)
+                for s in (signal.SIGINT, signal.SIGTERM)} if threading.current_thread() is threading.main_thread() else {}
+    try:
+        while not ctx.join():
+            pass
+    except mp.ProcessExitedException as e:
+        code = e.exit_code
+        if code in (130, 143):
+            name = "SIGINT" if code == 130 else "SIGTERM"
+            raise TrainingInterrupted(f"training stopped by {name}; checkpoint written. Resume with: splatzoo "
+                                      f"train --resume --out {run.path}", code) from None
+        how = f"was killed by {signal.Signals(-code).name}" if code < 0 else f"exited with code {code}"
+        raise SplatzooError(f"rank {e.error_index} of {cfg.nproc} {how}; the run stopped (its last checkpoint is "
+                            f"kept; resume with: splatzoo train --resume --out {run.path})") from None
+    except mp.ProcessRaisedException as e:
+        last = str(e).strip().splitlines()[-1]
+        raise SplatzooError(f"rank {e.error_index} of {cfg.nproc} failed: {last}. The last checkpoint is kept; "
+                            f"resume with: splatzoo train --resume --out {run.path}") from None
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    from .zoo import load_model
+
+    return TrainResult(run.path, load_model(run.model_path) if run.model_path.exists() else None,
+                       run.metrics() or {})
+
+
+def _rank_main(rank: int, world: int, port: int, run_path: str, scene, model: str, model_config: dict, cfg: dict,
+               resume: bool, progress: bool, evaluate_at_end: bool, stop_after: int | None) -> None:
+    """One rank of `_spawn_ranks`: join the process group, train, and exit with the shell's code for how it ended."""
+    from datetime import timedelta
+
+    import torch.distributed as dist
+
+    from .training.distributed import ProcessGroupComm
+    from .zoo import make_config
+
+    cfg = TrainConfig(**cfg)
+    cuda = cfg.backend == "cuda" or (cfg.backend == "auto" and torch.cuda.is_available())
+    if cuda:
+        torch.cuda.set_device(rank % torch.cuda.device_count())
+    else:  # the ranks share the cores
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+    dist.init_process_group("nccl" if cuda else "gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank,
+                            world_size=world, timeout=timedelta(minutes=10))
+    code = 0
+    try:
+        run = Run(run_path)
+        _train_loop(run, scene, model, make_config(model, **model_config), cfg,
+                    run.checkpoint() if resume else None, progress=progress, evaluate_at_end=evaluate_at_end,
+                    stop_after=stop_after, comm=ProcessGroupComm())
+    except TrainingInterrupted as e:
+        if rank == 0:
+            print(e, file=sys.stderr, flush=True)
+        code = e.exit_code
+    except SplatzooError as e:
+        print(f"error (rank {rank}): {e}", file=sys.stderr, flush=True)
+        code = 2
+    finally:
+        dist.destroy_process_group()
+    if code:
+        sys.exit(code)
 
 
 def _truncate_log(run: Run, iteration: int) -> None:

@@ -15,6 +15,7 @@ from ..errors import SplatzooError
 from ..rasterizers import rasterize
 from ..zoo import create_model, model_from_checkpoint
 from .densify import DensifyStats, densify_and_prune, reset_opacity
+from .distributed import Comm
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
 
 REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many iterations and scaled to the run
@@ -23,6 +24,8 @@ REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many itera
 @dataclass
 class TrainConfig:
     iterations: int = 30000
+    batch_size: int = field(default=1, metadata={"help": "views per step on each process"})
+    nproc: int = field(default=1, metadata={"help": "data-parallel processes (torch.distributed)"})
     backend: str = field(default="auto", metadata={"operational": True})
     seed: int = 0
     densify: bool = True
@@ -56,7 +59,7 @@ class TrainConfig:
                 raise SplatzooError(f"training option {f.name} must not be negative, got {v}")
         if self.iterations < 1:
             raise SplatzooError(f"--iterations must be at least 1, got {self.iterations}")
-        for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every"):
+        for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every", "batch_size", "nproc"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise SplatzooError(f"training option {name} must be at least 1, got {getattr(self, name)}")
         return self
@@ -69,6 +72,10 @@ class TrainConfig:
     def at(self, reference_iteration: int) -> int:
         """A schedule point stated for 30k iterations, scaled to this run's length."""
         return max(1, round(reference_iteration * self.iterations / REFERENCE_ITERATIONS))
+
+    @property
+    def views_per_step(self) -> int:
+        return self.batch_size * self.nproc
 
     @property
     def eval_interval(self) -> int:
@@ -104,16 +111,28 @@ class Trainer:
     the view order) and one `step()` of the loop. Files, signals and progress belong to the runs layer
     (splatzoo.runs); `state_dict()` is everything a checkpoint needs for a bit-identical resume."""
 
-    def __init__(self, scene, net, cfg: TrainConfig, backend: str, device: torch.device, state: dict | None = None):
+    def __init__(self, scene, net, cfg: TrainConfig, backend: str, device: torch.device, state: dict | None = None,
+                 comm: Comm | None = None):
         self.scene, self.cfg, self.backend, self.device = scene, cfg, backend, device
+        self.comm = comm or Comm()
         self.net = net.to(device)
-        self.optimizer = torch.optim.Adam(self.net.optim_groups(scene.extent), lr=0.0, eps=1e-15)
+        # larger batches: learning rates x sqrt(views per step), Adam's betas to the power of it (the rule
+        # Grendel-GS reports for Gaussian splatting; one view per step leaves the 2DGS recipe unchanged)
+        g = cfg.views_per_step
+        self.lr_scale = math.sqrt(g)
+        groups = self.net.optim_groups(scene.extent)
+        for group in groups:
+            group["lr"] = group.get("lr", 0.0) * self.lr_scale
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, betas=(0.9 ** g, 0.999 ** g))
         self.stats = DensifyStats(self.net.num_primitives)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.iteration, self.train_seconds, self.view_order = 0, 0.0, []
         if state is not None:
             self.optimizer.load_state_dict(state["optimizer"])
             self.stats.load_state_dict(state["densify"])
+            if self.comm.rank != 0:  # the checkpoint holds the sums over all ranks; rank 0 carries them on
+                self.stats.grad_sum.zero_()
+                self.stats.count.zero_()
             self.gen.set_state(state["generator"])
             self.iteration, self.train_seconds = int(state["iteration"]), float(state["train_seconds"])
             self.view_order = [int(i) for i in state["view_order"]]
@@ -124,35 +143,32 @@ class Trainer:
         self.reset_every = cfg.at(cfg.opacity_reset_interval)
 
     @classmethod
-    def start(cls, scene, model: str, model_config, cfg: TrainConfig, backend: str, device) -> "Trainer":
+    def start(cls, scene, model: str, model_config, cfg: TrainConfig, backend: str, device,
+              comm: Comm | None = None) -> "Trainer":
         """A fresh run: the model initialised from the scene's points (chosen by the seed)."""
         pts, cols = select_initial_points(scene.points, scene.colors, cfg.num_primitives, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
-        return cls(scene, net, cfg, backend, device)
+        return cls(scene, net, cfg, backend, device, comm=comm)
 
     @classmethod
-    def resume(cls, scene, state: dict, cfg: TrainConfig, backend: str, device) -> "Trainer":
-        return cls(scene, model_from_checkpoint(state["model"]), cfg, backend, device, state)
+    def resume(cls, scene, state: dict, cfg: TrainConfig, backend: str, device, comm: Comm | None = None) -> "Trainer":
+        return cls(scene, model_from_checkpoint(state["model"]), cfg, backend, device, state, comm=comm)
 
     def state_dict(self) -> dict:
+        """The checkpoint. With several ranks every rank must call it (it sums the densification statistics)."""
+        stats = self.stats.state_dict()
+        if self.comm.world > 1:
+            stats = {k: v.clone() for k, v in stats.items()}
+            self.comm.sum_(list(stats.values()))
         return {"model": self.net.checkpoint(), "optimizer": self.optimizer.state_dict(),
-                "densify": self.stats.state_dict(), "generator": self.gen.get_state(), "iteration": self.iteration,
+                "densify": stats, "generator": self.gen.get_state(), "iteration": self.iteration,
                 "train_seconds": self.train_seconds, "view_order": list(self.view_order)}
 
-    def step(self) -> dict:
-        """One iteration; returns {"loss", "photo"} and, on logging iterations, the log records to write."""
-        cfg, net, optimizer, scene = self.cfg, self.net, self.optimizer, self.scene
-        step = self.iteration + 1
-        t0 = time.perf_counter()
-        if not self.view_order:
-            self.view_order = torch.randperm(len(scene.train), generator=self.gen).tolist()
-        view = scene.train[self.view_order.pop()]
+    def _loss(self, view, step: int):
+        cfg = self.cfg
         cam = view.camera.to(self.device, torch.float32)
         target = view.image_float().to(self.device)
-        for g in optimizer.param_groups:
-            if g.get("name") == "means":
-                g["lr"] = _position_lr(cfg, step, scene.extent)
-        render = rasterize(net.surfels(cam), cam, backend=self.backend, background=self.background)
+        render = rasterize(self.net.surfels(cam), cam, backend=self.backend, background=self.background)
         l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
         loss = l_photo
         if cfg.lambda_normal > 0 and step > cfg.at(cfg.normal_from):
@@ -162,13 +178,54 @@ class Trainer:
         if not torch.isfinite(loss):
             raise SplatzooError(f"loss became {loss.item()} at iteration {step}; lower the learning rates or "
                                 "report the scene (the run keeps its last checkpoint)")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if self.densify_on and step <= self.d_until:
-            self.stats.accumulate(net, cam)
+        return loss, l_photo, render, target, cam
+
+    def _backward(self, views: list, step: int, track: bool):
+        """Sum of the views' gradients, divided by the step's view count (over all ranks) once summed over ranks.
+        Each view's own gradient feeds the densification statistics, as with one view per step."""
+        params = [p for g in self.optimizer.param_groups for p in g["params"]]
+        total = {}
+        losses, photos = [], []
+        for view in views:
+            loss, l_photo, render, target, cam = self._loss(view, step)
+            for p in params:
+                p.grad = None
+            loss.backward()
+            if track:
+                self.stats.accumulate(self.net, cam)
+            for p in params:
+                if p.grad is not None:
+                    total[p] = p.grad if p not in total else total[p] + p.grad
+            losses.append(loss.detach())
+            photos.append(l_photo.detach())
+        grads = [total.setdefault(p, torch.zeros_like(p)) for p in params]
+        self.comm.sum_(grads)
+        n = self.cfg.views_per_step
+        for p, grad in zip(params, grads):
+            p.grad = grad / n if n > 1 else grad
+        return torch.stack(losses).mean(), torch.stack(photos).mean(), render, target
+
+    def step(self) -> dict:
+        """One iteration; returns {"loss", "photo"} and, on logging iterations, the log records to write (rank 0)."""
+        cfg, net, optimizer, scene, comm = self.cfg, self.net, self.optimizer, self.scene, self.comm
+        step = self.iteration + 1
+        t0 = time.perf_counter()
+        views = []
+        for _ in range(cfg.views_per_step):  # every rank draws the same views and renders its share
+            if not self.view_order:
+                self.view_order = torch.randperm(len(scene.train), generator=self.gen).tolist()
+            views.append(scene.train[self.view_order.pop()])
+        mine = views[comm.rank * cfg.batch_size:(comm.rank + 1) * cfg.batch_size]
+        for g in optimizer.param_groups:
+            if g.get("name") == "means":
+                g["lr"] = _position_lr(cfg, step, scene.extent) * self.lr_scale
+        track = self.densify_on and step <= self.d_until
+        loss, l_photo, render, target = self._backward(mine, step, track)
         optimizer.step()
         if self.densify_on and self.d_from < step <= self.d_until:
             if step % self.d_every == 0:
+                if comm.world > 1:  # every rank decides from the statistics of all views
+                    comm.sum_([self.stats.grad_sum, self.stats.count])
                 # surfels get 100 iterations to recover from an opacity reset before transparent ones go
                 recovering = step > self.reset_every and step - (step // self.reset_every) * self.reset_every < 100
                 densify_and_prune(net, optimizer, self.stats, grad_threshold=cfg.densify_grad_threshold,
@@ -183,12 +240,15 @@ class Trainer:
         self.iteration = step
         out = {"loss": loss.item(), "photo": l_photo.item(), "records": []}
         if step % cfg.log_every == 0 or step == cfg.iterations:
+            mean = torch.stack([loss, l_photo]).to(torch.float32)
+            comm.sum_([mean])  # the loss of all the step's views
+            mean = mean / comm.world
             mse = ((render.rgb.detach() - target) ** 2).mean().item()
-            out["records"].append({"iteration": step, "loss": out["loss"], "photo": out["photo"],
+            out["records"].append({"iteration": step, "loss": mean[0].item(), "photo": mean[1].item(),
                                    "train_psnr": -10 * math.log10(max(mse, 1e-10)),
                                    "num_primitives": net.num_primitives, "seconds": round(self.train_seconds, 3),
                                    **net.summary()})
-        if scene.test and (step % cfg.eval_interval == 0 or step == cfg.iterations):
+        if comm.rank == 0 and scene.test and (step % cfg.eval_interval == 0 or step == cfg.iterations):
             out["records"].append({"iteration": step, "test_psnr": test_psnr(net, scene, self.backend)})
         return out
 
