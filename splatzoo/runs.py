@@ -220,10 +220,7 @@ class Run:
             raise SplatzooError(f"{self.path} was trained on an in-memory scene; it has no dataset to reload")
         if not Path(data).exists():
             raise SplatzooError(f"the dataset of {self.path} ({data}) no longer exists; restore it or move it back")
-        opts = dict(rec.get("scene_options", {}))
-        if opts.get("background") is not None:
-            opts["background"] = tuple(opts["background"])
-        return load_scene(data, **{k: v for k, v in opts.items() if v is not None})
+        return load_scene(data, **_load_options(rec))
 
     def load(self, backend: str | None = None):
         """(model, scene, record) of a finished run."""
@@ -482,6 +479,7 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
 
 
 def _load_options(record: dict) -> dict:
+    """The recorded scene options as load_scene arguments."""
     opts = dict(record.get("scene_options", {}))
     if opts.get("background") is not None:
         opts["background"] = tuple(opts["background"])
