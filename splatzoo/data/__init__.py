@@ -1,8 +1,10 @@
-"""Datasets: COLMAP and Blender readers, SfM from photos, and synthetic high-frequency benchmark scenes.
+"""Datasets: a registry of dataset formats (COLMAP, Blender), SfM from photos, and synthetic high-frequency
+benchmark scenes.
 
 Importing this package loads only numpy and torch; pycolmap, open3d and cv2 are imported when used.
 """
-from .scene import Scene, View, load_scene
+from .formats import detect_format, list_formats, load_scene, register_format
+from .scene import DatasetFormat, Scene, View
 
 
 def __getattr__(name):
@@ -18,5 +20,5 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["Scene", "View", "load_scene", "run_sfm", "SfMResult", "similarity_align", "make_synthetic_scene",
-           "list_scenes", "synthetic_cameras"]
+__all__ = ["Scene", "View", "DatasetFormat", "load_scene", "detect_format", "list_formats", "register_format", "run_sfm",
+           "SfMResult", "similarity_align", "make_synthetic_scene", "list_scenes", "synthetic_cameras"]

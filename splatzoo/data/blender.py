@@ -19,7 +19,7 @@ import torch
 
 from ..errors import DataError
 from ..types import Camera
-from .scene import (Scene, View, camera_extent, find_mask, image_has_alpha, image_size, mesh_path_of,
+from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_has_alpha, image_size, mesh_path_of,
                     scale_camera, split_views, target_scale)
 
 RANDOM_POINTS = 10_000
@@ -177,3 +177,14 @@ def load_blender(root, *, resolution: int | None = None, max_width: int | None =
     return Scene(name=root.resolve().name, root=root, train=train, test=test, points=points, colors=colors,
                  extent=camera_extent([v.camera for v in train], points), background=tuple(background),
                  mesh_path=mesh_path_of(root))
+
+
+def is_blender(root: Path) -> bool:
+    return (root / "transforms_train.json").is_file() or (root / "transforms.json").is_file()
+
+
+# Before COLMAP: an instant-ngp / nerfstudio folder holds transforms.json next to an images/ folder.
+FORMAT = DatasetFormat(
+    "blender", is_blender, load_blender, priority=10,
+    needs="transforms_train.json (and transforms_test.json) or one transforms.json, whose frames give each "
+          "image's file_path and transform_matrix, with camera_angle_x or fl_x")

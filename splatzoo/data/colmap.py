@@ -19,8 +19,9 @@ import torch
 
 from ..errors import DataError
 from ..types import Camera
-from .scene import (Scene, View, camera_extent, find_mask, image_has_alpha, image_size, list_images,
+from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_has_alpha, image_size, list_images,
                     mesh_path_of, scale_camera, split_views, target_scale)
+from .staging import replace_dir, temp_dir_beside
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 MODEL_FILES = ("cameras", "images", "points3D")
@@ -47,6 +48,12 @@ def find_sparse_dir(root: Path) -> Path | None:
         if (cand / "cameras.bin").is_file() or (cand / "cameras.txt").is_file():
             return cand
     return None
+
+
+def is_colmap(root: Path) -> bool:
+    """A COLMAP layout: a sparse model (sparse/0/, sparse/ or the folder itself), or images/ or sparse/ folders
+    (then load_colmap says what is missing)."""
+    return find_sparse_dir(root) is not None or (root / "images").is_dir() or (root / "sparse").is_dir()
 
 
 def read_model(sparse: Path):
@@ -78,7 +85,7 @@ def _model_stamp(sparse: Path, images_dir: Path, masks_dir: Path | None) -> str:
     return h.hexdigest()
 
 
-def _quiet_colmap(level: int = 1):
+def quiet_colmap(level: int = 1):
     """Silence pycolmap's log lines below `level` (glog: 1 = warnings, 2 = errors) for the duration of a call;
     our own progress messages say what is happening."""
     import contextlib
@@ -121,9 +128,9 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
     print(f"splatzoo: undistorting the images of {root} into {target} (done once, reused later) ...",
           file=sys.stderr, flush=True)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    tmp = temp_dir_beside(target)
     try:
-        with _quiet_colmap():
+        with quiet_colmap():
             try:
                 pycolmap.undistort_images(tmp, sparse, images_dir)
             except Exception as e:
@@ -135,7 +142,7 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
             p = tmp / junk
             shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
         (tmp / "source.json").write_text(json.dumps({"stamp": stamp, "from": str(root)}) + "\n")
-        _replace_dir(tmp, target)
+        replace_dir(tmp, target)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
@@ -158,19 +165,6 @@ def _undistort_masks(out: Path, sparse: Path, images_dir: Path, masks_dir: Path)
             os.symlink(m.resolve(), dst)
         pycolmap.undistort_images(work, sparse, links)
         shutil.move(str(Path(work) / "images"), str(out / "masks"))
-
-
-def _replace_dir(new: Path, target: Path) -> None:
-    """Rename `new` over `target`; the old folder is moved aside first and deleted after."""
-    old = None
-    if target.exists():
-        old = target.with_name(f".{target.name}.old-{os.getpid()}")
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(target, old)
-    os.replace(new, target)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def _camera_K(cam) -> np.ndarray:
@@ -300,6 +294,12 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
     return Scene(name=root.resolve().name, root=root, train=train, test=test, points=points, colors=colors,
                  extent=camera_extent([v.camera for v in (train or views)], points),
                  background=tuple(background), mesh_path=mesh_path_of(root))
+
+
+FORMAT = DatasetFormat(
+    "colmap", is_colmap, load_colmap, priority=20,
+    needs="images/ with the photos and sparse/0/ with cameras, images and points3D as .bin or .txt, "
+          "as COLMAP or `splatzoo sfm` writes them")
 
 
 # --- writing ------------------------------------------------------------------------------------------------

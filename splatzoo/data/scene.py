@@ -1,4 +1,5 @@
-"""Scene and View: what every dataset reader returns, plus `load_scene`, which picks the reader.
+"""Scene and View: what every dataset reader returns; DatasetFormat: what a reader declares (formats.py keeps the
+registry and `load_scene`); image decoding and helpers shared by the readers.
 
 Images stay on disk until asked for: a View decodes its file on first use and keeps the pixels only while a
 process-wide byte budget allows (env SPLATZOO_IMAGE_CACHE_MB, default 1024), so a 200-image full-HD capture
@@ -10,6 +11,7 @@ import os
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -234,6 +236,23 @@ class Scene:
                 f"points={self.points.shape[0]}, extent={self.extent:.4g})")
 
 
+@dataclass(frozen=True)
+class DatasetFormat:
+    """A dataset folder layout that `load_scene` reads (registered in splatzoo.data.formats).
+
+    detect(path) -> bool: cheap (file names only), True when the folder looks like this format.
+    load(path, *, resolution, max_width, test_every, background, masks) -> Scene.
+    needs: what a folder of this format holds, shown when no format recognises a folder.
+    priority: lower is tried first, so a specific layout wins over a generic one that also matches.
+    """
+
+    name: str
+    detect: Callable[[Path], bool]
+    load: Callable[..., Scene]
+    needs: str
+    priority: int = 100
+
+
 # --- helpers shared by the readers --------------------------------------------------------------------------
 
 def camera_extent(cameras: list[Camera], points: torch.Tensor | None = None) -> float:
@@ -313,53 +332,3 @@ def mesh_path_of(root: Path) -> Path | None:
         if mesh and (root / mesh).is_file():
             return root / mesh
     return root / "mesh.ply" if (root / "mesh.ply").is_file() else None
-
-
-# --- the entry point ------------------------------------------------------------------------------------------
-
-def detect_format(path: Path) -> str:
-    """'blender' or 'colmap'; a DataError says what a dataset folder must contain otherwise."""
-    path = Path(path)
-    if not path.exists():
-        raise DataError(f"dataset folder {path} does not exist; check the path (create one with "
-                        "`splatzoo sfm IMAGES --out DATA` or `splatzoo synth NAME --out DATA`)")
-    if not path.is_dir():
-        raise DataError(f"{path} is a file, not a dataset folder; pass the folder that holds images/ and sparse/0/ "
-                        "(COLMAP) or transforms_train.json (Blender)")
-    if (path / "transforms_train.json").is_file() or (path / "transforms.json").is_file():
-        return "blender"
-    from .colmap import find_sparse_dir
-
-    if find_sparse_dir(path) is not None or (path / "images").is_dir() or (path / "sparse").is_dir():
-        return "colmap"
-    if not any(path.iterdir()):
-        raise DataError(f"dataset folder {path} is empty; put a COLMAP dataset (images/ + sparse/0/) or a Blender "
-                        "dataset (transforms_train.json + images) there, or run `splatzoo sfm` on a folder of photos")
-    raise DataError(f"{path} is not a dataset: expected images/ and sparse/0/ (COLMAP) or transforms_train.json "
-                    "(Blender/NeRF-synthetic). For a folder of photos run `splatzoo sfm "
-                    f"{path} --out DATA` first")
-
-
-def load_scene(path, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
-               background=(0.0, 0.0, 0.0), masks: bool = False) -> Scene:
-    """Load a COLMAP or Blender/NeRF-synthetic dataset folder (detected automatically).
-
-    resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width.
-    test_every: images sorted by name, index % test_every == 0 go to `test` (0: no test split; Blender
-    datasets with transforms_test.json use their own split). background: RGB in [0,1] behind RGBA images.
-    masks: expose per-view masks (masks/<name> files, else the image alpha channel).
-    """
-    path = Path(path).expanduser()
-    background = tuple(float(c) for c in background)
-    if len(background) != 3 or not all(0.0 <= c <= 1.0 for c in background):
-        raise DataError(f"background must be three numbers in [0,1], got {background}")
-    kind = detect_format(path)
-    if kind == "blender":
-        from .blender import load_blender
-
-        return load_blender(path, resolution=resolution, max_width=max_width, test_every=test_every,
-                            background=background, masks=masks)
-    from .colmap import load_colmap
-
-    return load_colmap(path, resolution=resolution, max_width=max_width, test_every=test_every,
-                       background=background, masks=masks)

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
+from .colmap import import_pycolmap, quiet_colmap
 from .scene import image_size, list_images
+from .staging import prepare_output, finish_output, replace_dir, temp_dir_beside
 
 
 @dataclass
@@ -85,11 +87,7 @@ def _check_images(images_dir: Path) -> list[Path]:
 def sfm_in_place(dataset: Path, *, camera_model: str = "SIMPLE_RADIAL", single_camera: bool = True,
                  num_threads: int = -1, seed: int = 0, progress=None) -> SfMResult:
     """Run SfM on dataset/images, writing dataset/database.db and dataset/sparse/0 (the largest model)."""
-    from .colmap import import_pycolmap
     pycolmap = import_pycolmap()
-
-    from .colmap import _quiet_colmap
-
     say = _say(progress)
     t0 = time.perf_counter()
     dataset = Path(dataset)
@@ -112,7 +110,7 @@ def sfm_in_place(dataset: Path, *, camera_model: str = "SIMPLE_RADIAL", single_c
         match = pycolmap.FeatureMatchingOptions()
         match.num_threads = num_threads
         match.use_gpu = False
-        with _quiet_colmap(2):  # its warnings are about GPU/threads/RAM, not about the result
+        with quiet_colmap(2):  # its warnings are about GPU/threads/RAM, not about the result
             say(f"[1/3] extracting SIFT features from {len(names)} images ...")
             pycolmap.extract_features(db, images, camera_mode=mode, reader_options=reader,
                                       extraction_options=extract, device=pycolmap.Device.cpu)
@@ -164,8 +162,6 @@ def run_sfm(images_dir, out_dir, *, progress=True, camera_model: str = "SIMPLE_R
     If images_dir is already out_dir/images the photos are not copied; only sparse/ and database.db are added.
     Nothing is written at out_dir until SfM has finished. Returns an SfMResult (also usable as a path).
     """
-    from .synthetic import finish_output, prepare_output
-
     say = _say(progress)
     images_dir, out_dir = Path(images_dir).expanduser(), Path(out_dir).expanduser()
     names = _check_images(images_dir)
@@ -173,9 +169,7 @@ def run_sfm(images_dir, out_dir, *, progress=True, camera_model: str = "SIMPLE_R
     if in_place:
         if (out_dir / "sparse").exists() and not overwrite:
             raise DataError(f"{out_dir / 'sparse'} already exists; pass --overwrite to replace the model")
-        import tempfile
-
-        tmp = Path(tempfile.mkdtemp(prefix=".sfm.tmp-", dir=out_dir))
+        tmp = temp_dir_beside(out_dir / "sparse")
     else:
         tmp = prepare_output(out_dir, overwrite)
     try:
@@ -194,9 +188,7 @@ def run_sfm(images_dir, out_dir, *, progress=True, camera_model: str = "SIMPLE_R
             raise DataError(str(e).replace(str(tmp / "images"), str(images_dir))) from None
         if in_place:
             (tmp / "images").unlink()
-            from .colmap import _replace_dir
-
-            _replace_dir(tmp / "sparse", out_dir / "sparse")
+            replace_dir(tmp / "sparse", out_dir / "sparse")
             (tmp / "database.db").replace(out_dir / "database.db")
             shutil.rmtree(tmp, ignore_errors=True)
         else:

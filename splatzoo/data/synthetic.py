@@ -26,9 +26,6 @@ from __future__ import annotations
 import difflib
 import json
 import math
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +36,9 @@ import torch
 
 from ..errors import DataError
 from ..types import Camera
+from .colmap import import_pycolmap, write_model
+from .sfm import sfm_in_place, similarity_align
+from .staging import staged_output
 
 SUPERSAMPLE = 2   # 2x2 = 4 rays per pixel on an n-rooks pattern: 4 distinct rows and columns per pixel
 POINTS = 4000
@@ -501,50 +501,6 @@ def _write_mesh(path: Path, mesh: MeshScene) -> None:
         raise DataError(f"cannot write mesh {path}; check free space and permissions")
 
 
-def prepare_output(out: Path, overwrite: bool) -> Path:
-    """A fresh temporary folder beside `out`; refuse to replace a non-empty `out` unless overwrite."""
-    out = Path(out).expanduser()
-    if out.exists() and not out.is_dir():
-        raise DataError(f"output {out} exists and is a file; choose a folder path")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise DataError(f"output folder {out} already exists and is not empty; choose another --out or pass "
-                        "--overwrite to replace it")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        _remove_abandoned_temp(out)
-        return Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-{os.getpid()}-", dir=out.parent))
-    except OSError as e:
-        raise DataError(f"cannot create output folder next to {out}: {e.strerror or e}; choose a writable "
-                        "location") from None
-
-
-def _remove_abandoned_temp(out: Path) -> None:
-    """Temporary folders beside `out` whose process is gone (killed with SIGKILL, which runs no clean-up)."""
-    import glob
-    import re
-
-    pattern = re.compile(re.escape(f".{out.name}.tmp-") + r"(\d+)-")
-    for p in out.parent.glob(f".{glob.escape(out.name)}.tmp-*"):
-        m = pattern.match(p.name)
-        if not m or not p.is_dir():
-            continue
-        try:
-            os.kill(int(m.group(1)), 0)
-        except ProcessLookupError:
-            shutil.rmtree(p, ignore_errors=True)
-        except (PermissionError, OverflowError):
-            pass  # alive under another user, or not a pid: leave it
-
-
-def finish_output(tmp: Path, out: Path) -> None:
-    """Move the finished temporary folder to `out` (replacing an old one only at this last step)."""
-    from .colmap import _replace_dir
-
-    if out.is_dir() and not any(out.iterdir()):
-        out.rmdir()
-    _replace_dir(tmp, out)
-
-
 def _progress_fn(progress) -> Callable[[str], None]:
     if callable(progress):
         return progress
@@ -569,8 +525,7 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
     out = Path(out).expanduser()
     t0 = time.perf_counter()
     cams = synthetic_cameras(name, views, width, height, seed)
-    tmp = prepare_output(out, overwrite)
-    try:
+    with staged_output(out, overwrite) as tmp:
         mesh = MeshScene(spec.build())
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
@@ -583,8 +538,6 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
         t_render = time.perf_counter() - t0
         info: dict = {}
         if sfm:
-            from .sfm import sfm_in_place, similarity_align
-
             say("recovering poses with SfM ...")
             try:
                 res = sfm_in_place(tmp, progress=say)
@@ -602,7 +555,6 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
             est = np.array([im.projection_center() for im in reg])
             true = np.array([by_name[im.name].center.double().numpy() for im in reg])
             s, R, t = similarity_align(est, true)
-            from .colmap import import_pycolmap
             pycolmap = import_pycolmap()
 
             rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
@@ -615,8 +567,6 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
         else:
             rng = np.random.default_rng(seed + 1)
             P, C, tracks = sample_points(mesh, cams, points, rng)
-            from .colmap import write_model
-
             write_model(tmp / "sparse" / "0", cams, [c.name for c in cams], P, C, tracks)
         _write_mesh(tmp / "mesh.ply", mesh)
         centers = np.stack([c.center.double().numpy() for c in cams])
@@ -636,9 +586,5 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
             "seconds": round(time.perf_counter() - t0, 3), "render_seconds": round(t_render, 3),
         }
         (tmp / "scene.json").write_text(json.dumps(info, indent=1) + "\n")
-        finish_output(tmp, out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     say(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
     return out

@@ -1,0 +1,80 @@
+"""The registry of dataset formats and `load_scene`, which picks a format by looking at the folder.
+
+Each reader module declares its layout as a `DatasetFormat` (name, detect, load, needs); the built-in ones
+(COLMAP, Blender) are registered here, and `register_format` adds another from Python:
+
+    register_format(DatasetFormat("mine", detect=lambda p: (p / "mine.json").is_file(), load=load_mine,
+                                  needs="mine.json and its images"))
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import DataError
+from ..registry import Registry
+from . import blender, colmap
+from .scene import DatasetFormat, Scene
+
+FORMATS: Registry[DatasetFormat] = Registry("dataset format")
+
+
+def register_format(fmt: DatasetFormat) -> DatasetFormat:
+    """Add a dataset format; a second format under one name is an error."""
+    if not isinstance(fmt, DatasetFormat):
+        raise TypeError(f"register_format expects a DatasetFormat, got {type(fmt).__name__}")
+    return FORMATS.register(fmt.name, fmt)
+
+
+def list_formats() -> list[DatasetFormat]:
+    """Every registered format, in the order detection tries them."""
+    return sorted((e.spec for e in FORMATS.entries() if e.spec is not None), key=lambda f: (f.priority, f.name))
+
+
+def known_formats_text() -> str:
+    """'colmap (images/ ...); blender (...)': the formats and what each needs, for messages."""
+    return "; ".join(f"{f.name} ({f.needs})" for f in list_formats())
+
+
+register_format(colmap.FORMAT)
+register_format(blender.FORMAT)
+
+
+def detect_format(path) -> str:
+    """The name of the format of dataset folder `path`; a DataError says what a dataset folder must contain."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"dataset folder {path} does not exist; check the path (create one with "
+                        "`splatzoo sfm IMAGES --out DATA` or `splatzoo synth NAME --out DATA`)")
+    if not path.is_dir():
+        raise DataError(f"{path} is a file, not a dataset folder; pass the folder of a dataset. Known formats: "
+                        f"{known_formats_text()}")
+    for fmt in list_formats():
+        if fmt.detect(path):
+            return fmt.name
+    if not any(path.iterdir()):
+        raise DataError(f"dataset folder {path} is empty; put a dataset there (known formats: "
+                        f"{known_formats_text()}) or run `splatzoo sfm` on a folder of photos")
+    raise DataError(f"{path} is not a dataset folder that splatzoo recognises. Known formats: {known_formats_text()}. "
+                    f"For a folder of photos run `splatzoo sfm {path} --out DATA` first")
+
+
+def load_scene(path, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
+               background=(0.0, 0.0, 0.0), masks: bool = False, format: str | None = None) -> Scene:
+    """Load a dataset folder in any registered format (COLMAP, Blender/NeRF-synthetic, ...), detected automatically.
+
+    resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width.
+    test_every: images sorted by name, index % test_every == 0 go to `test` (0: no test split; Blender
+    datasets with transforms_test.json use their own split). background: RGB in [0,1] behind RGBA images.
+    masks: expose per-view masks (masks/<name> files, else the image alpha channel).
+    format: a registered format name, to skip detection.
+    """
+    path = Path(path).expanduser()
+    background = tuple(float(c) for c in background)
+    if len(background) != 3 or not all(0.0 <= c <= 1.0 for c in background):
+        raise DataError(f"background must be three numbers in [0,1], got {background}")
+    if format is None:
+        format = detect_format(path)
+    elif not path.is_dir():
+        detect_format(path)  # the missing-folder / not-a-folder messages
+    return FORMATS.get(format).load(path, resolution=resolution, max_width=max_width, test_every=test_every,
+                                    background=background, masks=masks)
