@@ -1,5 +1,5 @@
 """scripts/install.sh decides where splatzoo goes (checked with --dry-run and a stub interpreter, so nothing is
-installed), and the README's set-up is what CI runs."""
+installed), the README's set-up is what CI runs, and each checkout and environment gets its own native build."""
 from __future__ import annotations
 
 import os
@@ -10,6 +10,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "install.sh"
@@ -141,3 +142,24 @@ def test_the_venv_is_not_tracked():
     r = subprocess.run(["git", "check-ignore", "-q", ".venv/bin/python"], cwd=REPO)
     assert r.returncode == 0, ".venv is not ignored by .gitignore"
 
+
+def test_the_native_build_cache_is_one_per_checkout_and_environment(monkeypatch, tmp_path):
+    """The build files name the sources, torch and Python's headers by absolute path: a shared build name would have
+    two checkouts (or two venvs) rebuild each other's extension on every switch."""
+    from splatzoo.rasterizers import native
+
+    name = native._build_name("cpu")
+    assert native._build_name("cpu") == name
+    other_checkout = tmp_path / "checkout" / "splatzoo" / "csrc"
+    shutil.copytree(native.CSRC, other_checkout)  # the same sources, elsewhere
+    elsewhere = {
+        "another checkout": (native, "CSRC", other_checkout),
+        "another environment's torch": (torch, "__file__", str(tmp_path / "venv/site-packages/torch/__init__.py")),
+        "another torch version": (torch, "__version__", "0.0.1+other"),
+        "another Python": (native.sys, "version", "3.12.1 (main) [GCC 12.2.0]"),
+        "another Python's headers": (native.sysconfig, "get_paths", lambda: {"include": "/opt/py/include/python3.11"}),
+    }
+    for what, (obj, attr, value) in elsewhere.items():
+        with monkeypatch.context() as m:
+            m.setattr(obj, attr, value)
+            assert native._build_name("cpu") != name, what

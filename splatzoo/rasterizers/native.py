@@ -7,7 +7,8 @@ for the host (csrc/cuda_emulation.h) on CPU tensors: the test-only "cuda-emulate
 
 The extension is compiled on first use with torch.utils.cpp_extension.load into a cache directory
 ($SPLATZOO_EXTENSIONS_DIR, else $TORCH_EXTENSIONS_DIR/splatzoo, else ~/.cache/splatzoo/torch_extensions), never at
-import time. A failed build raises BackendUnavailableError saying what to install.
+import time: one build per sources, compiler, flags, CPU, torch, Python and location (see _build_name). A failed build
+raises BackendUnavailableError saying what to install.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ import platform
 import re
 import subprocess
 import sys
+import sysconfig
 import threading
 import time
 from dataclasses import dataclass, fields
@@ -102,6 +104,12 @@ def _build_name(kind: str) -> str:
         h.update((CSRC / name).read_bytes())
     h.update(" ".join(build_flags()).encode())
     h.update(torch.__version__.encode())
+    # The build files name the sources, torch's headers and libraries and Python's headers by absolute path, and ninja
+    # rebuilds when any of them changes: so each checkout and each environment (venv, conda, interpreter) gets a build
+    # of its own instead of rebuilding, and replacing under a running process, the build of another.
+    torch_dir = os.path.dirname(os.path.abspath(torch.__file__))
+    for where in (CSRC, torch_dir, sysconfig.get_paths()["include"], sys.version):
+        h.update(b"\0" + str(where).encode())
     return f"splatzoo_{kind}_{_cpu_signature()}_{h.hexdigest()[:10]}"
 
 
