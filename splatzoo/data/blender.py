@@ -34,12 +34,88 @@ def _read_json(path: Path) -> dict:
         raise DataError(f"cannot read {path}: {e}") from None
     except json.JSONDecodeError as e:
         raise DataError(f"{path} is not valid JSON (line {e.lineno}: {e.msg}); fix or re-export it") from None
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
+    if not isinstance(meta, dict):
+        raise DataError(f"{path} must hold a JSON object with a 'frames' list, not a {_json_type(meta)}; a Blender "
+                        "transforms file is {\"camera_angle_x\": ..., \"frames\": [...]}")
+    if "frames" not in meta:
         raise DataError(f"{path} has no 'frames' list; a Blender transforms file needs frames with file_path "
                         "and transform_matrix")
+    if not isinstance(meta["frames"], list):
+        raise DataError(f"{path}: 'frames' must be a list of frames, not a {_json_type(meta['frames'])}")
     if not meta["frames"]:
         raise DataError(f"{path} lists no frames; add frames or use another split file")
     return meta
+
+
+def _json_type(value) -> str:
+    return {dict: "JSON object", list: "list", str: "string", bool: "boolean", type(None): "null"}.get(
+        type(value), "number")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _option(frame: dict, meta: dict, key: str, where: str, i: int, *, positive: bool = False,
+            below: float | None = None, hint: str = "") -> float | None:
+    """A per-frame value (or, failing that, the file's), checked: a finite number, > 0 if `positive`, < `below`.
+    Absent or null: None."""
+    if frame.get(key) is not None:
+        value, at = frame[key], f"{where}: frame {i}"
+    elif meta.get(key) is not None:
+        value, at = meta[key], where
+    else:
+        return None
+    if not _is_number(value):
+        raise DataError(f"{at}: {key} must be a number, not {value!r:.60}{hint}")
+    if not math.isfinite(value):
+        raise DataError(f"{at}: {key} is {value}, not a finite number{hint}")
+    if positive and value <= 0:
+        raise DataError(f"{at}: {key} is {value}; it must be greater than 0{hint}")
+    if below is not None and value >= below:
+        raise DataError(f"{at}: {key} is {value}; it must be less than {below:.4g}{hint}")
+    return float(value)
+
+
+_ANGLE_HINT = " (the field of view in radians, between 0 and pi; 40 degrees is 0.698)"
+
+
+def _pose(frame: dict, where: str, i: int) -> np.ndarray:
+    """The frame's camera-to-world matrix as 4x4 float64, or a DataError saying what is wrong with it."""
+    at = f"{where}: frame {i} transform_matrix"
+    m = frame.get("transform_matrix")
+    if m is None:
+        raise DataError(f"{where}: frame {i} has no transform_matrix (its 4x4 camera-to-world matrix); add it or "
+                        "remove the frame")
+    if not isinstance(m, list) or not all(isinstance(row, list) for row in m):
+        raise DataError(f"{at} must be a list of 4 rows of 4 numbers, not {m!r:.60}")
+    lengths = [len(row) for row in m]
+    if lengths not in ([4, 4, 4, 4], [4, 4, 4]):
+        raise DataError(f"{at} must be 4 rows of 4 numbers (or 3 rows of 4); its rows have lengths {lengths}")
+    for r, row in enumerate(m):
+        bad = next((v for v in row if not _is_number(v)), "ok")
+        if bad != "ok":
+            raise DataError(f"{at}: row {r} holds {bad!r:.40}, not a number")
+    c2w = np.asarray(m, dtype=np.float64)
+    if not np.isfinite(c2w).all():
+        raise DataError(f"{at} holds NaN or infinity; re-export the camera poses")
+    if c2w.shape == (3, 4):
+        c2w = np.vstack([c2w, [0, 0, 0, 1]])
+    if not np.allclose(c2w[3], [0, 0, 0, 1], atol=1e-6):
+        raise DataError(f"{at}: the last row is {c2w[3].tolist()}, not [0, 0, 0, 1]; it is not a camera pose")
+    R = c2w[:3, :3]
+    det = float(np.linalg.det(R))
+    if abs(det) < 1e-6:
+        raise DataError(f"{at} is singular (its 3x3 rotation part has determinant {det:.3g}); the camera has no "
+                        "orientation. Re-export the camera poses")
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > 1e-3:
+        raise DataError(f"{at}: its 3x3 part is not a rotation (columns not unit length and perpendicular: off by "
+                        f"{err:.3g}); remove any scale from the cameras and re-export")
+    if det < 0:
+        raise DataError(f"{at} is a reflection (determinant {det:.3g}), not a rotation; the camera axes must be "
+                        "right-handed. Re-export the camera poses")
+    return c2w
 
 
 def _image_path(root: Path, file_path: str, where: Path) -> Path:
@@ -59,34 +135,44 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
     views = []
     size = None
     for i, frame in enumerate(meta["frames"]):
-        if "file_path" not in frame or "transform_matrix" not in frame:
-            raise DataError(f"{meta_path}: frame {i} lacks file_path or transform_matrix")
-        path = _image_path(root, frame["file_path"], meta_path)
+        if not isinstance(frame, dict):
+            raise DataError(f"{meta_path}: frame {i} must be an object with file_path and transform_matrix, not "
+                            f"{frame!r:.60}")
+        file_path = frame.get("file_path")
+        if file_path is None or file_path == "":
+            raise DataError(f"{meta_path}: frame {i} has no file_path (the image's path relative to {root}); add it "
+                            "or remove the frame")
+        if not isinstance(file_path, str):
+            raise DataError(f"{meta_path}: frame {i} file_path must be a string (a path relative to {root}), not "
+                            f"{file_path!r:.60}")
+        c2w = _pose(frame, meta_path, i)
+        path = _image_path(root, file_path, meta_path)
         w, h = image_size(path)
         if size is None:
             size = (w, h, path)
         elif (w, h) != size[:2] and "w" not in frame and "fl_x" not in frame:
             raise DataError(f"images in {meta_path} differ in size: {size[2]} is {size[0]}x{size[1]} but {path} is "
                             f"{w}x{h}; a shared camera_angle_x needs one image size. Resize them to one size")
-        get = lambda k, d=None: frame.get(k, meta.get(k, d))  # noqa: E731 (per-frame values override)
-        if get("fl_x") is not None:
-            fx = float(get("fl_x"))
-            fy = float(get("fl_y", fx))
-        elif get("camera_angle_x") is not None:
-            fx = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
-            fy = 0.5 * h / math.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") else fx
+
+        def get(key, **check):  # per-frame values override the file's
+            return _option(frame, meta, key, meta_path, i, **check)
+        fx, fy = get("fl_x", positive=True), get("fl_y", positive=True)
+        angle_x = get("camera_angle_x", positive=True, below=math.pi, hint=_ANGLE_HINT)
+        angle_y = get("camera_angle_y", positive=True, below=math.pi, hint=_ANGLE_HINT)
+        if fx is not None:
+            fy = fy if fy is not None else fx
+        elif angle_x is not None:
+            fx = 0.5 * w / math.tan(0.5 * angle_x)
+            fy = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fx
         else:
-            raise DataError(f"{meta_path} gives no focal length: add camera_angle_x (radians) or fl_x")
-        if get("w") is not None and (int(get("w")), int(get("h", h))) != (w, h):
-            fx *= w / float(get("w"))   # intrinsics written for another image size: rescale them
-            fy *= h / float(get("h", h))
-        cx = float(get("cx", w / 2)) * (w / float(get("w", w)))
-        cy = float(get("cy", h / 2)) * (h / float(get("h", h)))
-        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        if c2w.shape == (3, 4):
-            c2w = np.vstack([c2w, [0, 0, 0, 1]])
-        if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
-            raise DataError(f"{meta_path}: frame {i} transform_matrix must be a finite 4x4 matrix")
+            raise DataError(f"{meta_path} gives no focal length for frame {i}: add camera_angle_x (radians) or fl_x")
+        fw, fh = get("w", positive=True), get("h", positive=True)
+        fw, fh = fw or w, fh or h
+        if (fw, fh) != (w, h):
+            fx *= w / fw   # intrinsics written for another image size: rescale them
+            fy *= h / fh
+        cx = (get("cx") if get("cx") is not None else fw / 2) * (w / fw)
+        cy = (get("cy") if get("cy") is not None else fh / 2) * (h / fh)
         w2c = np.linalg.inv(c2w @ _OPENGL_TO_OPENCV)
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
         name = str(path.relative_to(root))

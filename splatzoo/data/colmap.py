@@ -1,8 +1,9 @@
 """COLMAP datasets: images/ + sparse/0/ (binary or text), read with pycolmap.
 
-PINHOLE and SIMPLE_PINHOLE cameras load directly. Any other model (SIMPLE_RADIAL, OPENCV, fisheye, ...) is
-undistorted once with pycolmap into DATA/undistorted/ (images, masks and a PINHOLE model) and that copy is
-used from then on; it is rebuilt when the sparse model changes.
+PINHOLE and SIMPLE_PINHOLE cameras (and other models with every distortion term zero) load directly. Any other
+perspective model (SIMPLE_RADIAL, OPENCV, division, fisheye, ...) is undistorted once with pycolmap into
+DATA/undistorted/ (images, masks and a PINHOLE model) and that copy is used from then on; it is rebuilt when the
+sparse model changes. Non-perspective models (EQUIRECTANGULAR) are an error that names them; see camera_models.py.
 """
 from __future__ import annotations
 
@@ -19,27 +20,16 @@ import torch
 
 from ..errors import DataError
 from ..types import Camera
+from .camera_models import (PINHOLE_MODELS, check_undistortable, for_undistortion, import_pycolmap, is_pinhole,
+                            pinhole_K)
 from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_has_alpha, image_size, list_images,
                     mesh_path_of, scale_camera, split_views, target_scale)
 from .staging import replace_dir, temp_dir_beside
 
-PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+__all__ = ["PINHOLE_MODELS", "import_pycolmap", "quiet_colmap", "find_sparse_dir", "is_colmap", "read_model", "undistort",
+           "load_colmap", "write_model", "FORMAT"]
 MODEL_FILES = ("cameras", "images", "points3D")
 UNDISTORTED_DIR = "undistorted"
-
-
-def import_pycolmap():
-    """pycolmap, with SIGTERM handled as before: importing it installs a handler (its logging library's) that
-    prints a C++ stack trace and kills the process, skipping every clean-up and checkpoint on the way out."""
-    import signal
-    import threading
-
-    before = signal.getsignal(signal.SIGTERM)
-    import pycolmap
-
-    if before is not None and threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, before)
-    return pycolmap
 
 
 def find_sparse_dir(root: Path) -> Path | None:
@@ -130,15 +120,16 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_dir_beside(target)
     try:
+        source = _undistortable_model(sparse, tmp / "source-model")
         with quiet_colmap():
             try:
-                pycolmap.undistort_images(tmp, sparse, images_dir)
+                pycolmap.undistort_images(tmp, source, images_dir)
             except Exception as e:
                 raise DataError(f"undistorting {root} failed: {e}. Check that every image named in {sparse} "
                                 f"exists in {images_dir}") from None
             if masks_dir is not None:
-                _undistort_masks(tmp, sparse, images_dir, masks_dir)
-        for junk in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
+                _undistort_masks(tmp, source, images_dir, masks_dir)
+        for junk in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh", "source-model"):
             p = tmp / junk
             shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
         (tmp / "source.json").write_text(json.dumps({"stamp": stamp, "from": str(root)}) + "\n")
@@ -147,6 +138,22 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
     return target
+
+
+def _undistortable_model(sparse: Path, spare: Path) -> Path:
+    """`sparse`, or a copy in `spare` with cameras that pycolmap would copy unwarped swapped for equivalent ones
+    that it warps (see camera_models.for_undistortion)."""
+    model = read_model(sparse)
+    swaps = {cid: for_undistortion(cam) for cid, cam in model.cameras.items()}
+    swaps = {cid: cam for cid, cam in swaps.items() if cam is not None}
+    if not swaps:
+        return sparse
+    for cid, cam in swaps.items():
+        model.cameras[cid].model = cam.model
+        model.cameras[cid].params = list(cam.params)
+    spare.mkdir(parents=True)
+    model.write_binary(str(spare))
+    return spare
 
 
 def _undistort_masks(out: Path, sparse: Path, images_dir: Path, masks_dir: Path) -> None:
@@ -165,23 +172,6 @@ def _undistort_masks(out: Path, sparse: Path, images_dir: Path, masks_dir: Path)
             os.symlink(m.resolve(), dst)
         pycolmap.undistort_images(work, sparse, links)
         shutil.move(str(Path(work) / "images"), str(out / "masks"))
-
-
-def _camera_K(cam) -> np.ndarray:
-    name = cam.model_name if hasattr(cam, "model_name") else str(cam.model).split(".")[-1]
-    p = np.asarray(cam.params, dtype=np.float64)
-    if name == "SIMPLE_PINHOLE":
-        fx = fy = p[0]
-        cx, cy = p[1], p[2]
-    elif name == "PINHOLE":
-        fx, fy, cx, cy = p[:4]
-    else:
-        raise DataError(f"camera {cam.camera_id} has model {name}; only PINHOLE/SIMPLE_PINHOLE load directly")
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-
-
-def _model_name(cam) -> str:
-    return cam.model_name if hasattr(cam, "model_name") else str(cam.model).split(".")[-1]
 
 
 def load_colmap(root, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
@@ -208,7 +198,18 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
                         "from; re-run `splatzoo sfm` (or COLMAP point_triangulator) to triangulate points")
     masks_dir = root / "masks" if (root / "masks").is_dir() else None
 
-    distorted = sorted({_model_name(model.cameras[im.camera_id]) for im in registered} - set(PINHOLE_MODELS))
+    # Every photo must be present and whole before undistortion reads it: it would copy a gap or decode a cut-off
+    # JPEG as grey without a word.
+    missing = [im.name for im in registered if not (images_dir / im.name).is_file()]
+    if missing:
+        raise DataError(f"{len(missing)} image(s) named in {sparse} are missing from {images_dir} "
+                        f"(e.g. {', '.join(missing[:3])}); restore them or re-run SfM on the images you have")
+    for im in registered:
+        image_size(images_dir / im.name)
+    used = sorted({im.camera_id for im in registered})
+    for cid in used:
+        check_undistortable(model.cameras[cid], sparse)
+    distorted = [cid for cid in used if not is_pinhole(model.cameras[cid])]
     if distorted:
         # Masks are undistorted along with the images whether or not they are asked for now, so loading with
         # and without masks shares one cached copy.
@@ -221,11 +222,7 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
     else:
         resolution_dir = root / f"images_{resolution}" if resolution in (2, 4, 8) else None
 
-    # Each image must exist and match its camera's size: a stray crop or rotated photo would shift every pixel.
-    missing = [im.name for im in registered if not (images_dir / im.name).is_file()]
-    if missing:
-        raise DataError(f"{len(missing)} image(s) named in {sparse} are missing from {images_dir} "
-                        f"(e.g. {', '.join(missing[:3])}); restore them or re-run SfM on the images you have")
+    # Each image must match its camera's size: a stray crop or rotated photo would shift every pixel.
     sizes = {im.name: image_size(images_dir / im.name) for im in registered}
     by_camera: dict[int, set] = defaultdict(set)
     for im in registered:
@@ -259,7 +256,7 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
     views = []
     for im in sorted(registered, key=lambda im: im.name):
         ccam = model.cameras[im.camera_id]
-        K = _camera_K(ccam)
+        K = pinhole_K(ccam)
         w, h = sizes[im.name]
         if im.camera_id in cam_scale:
             sx, sy = cam_scale[im.camera_id]

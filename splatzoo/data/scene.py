@@ -24,13 +24,72 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".e
 
 # --- image decoding ---------------------------------------------------------------------------------------
 
+_JPEG_START, _JPEG_END = b"\xff\xd8", b"\xff\xd9"
+_PNG_START, _PNG_END = b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82"
+_PADDING = b"\x00\xff\r\n\t "   # what some writers leave after the end marker
+_TAIL = 4096
+
+
+def _missing_end(head: bytes, tail: bytes) -> str | None:
+    """Why a JPEG or PNG file is cut short, judged by its end marker, or None if it ends properly (or is another
+    format). A decoder fills a cut-off JPEG with grey without complaint, so the marker is the cheap signal."""
+    if head.startswith(_JPEG_START) and not tail.rstrip(_PADDING).endswith(_JPEG_END):
+        return "the JPEG data stops before its end-of-image marker (FFD9)"
+    if head.startswith(_PNG_START) and not tail.rstrip(_PADDING).endswith(_PNG_END):
+        return "the PNG data stops before its IEND chunk"
+    return None
+
+
+def _decodes_fully(source) -> str | None:
+    """The decoder's verdict for a file whose end marker is missing: None when PIL decodes every pixel (extra data
+    after the image, as some cameras append, is fine), else its complaint."""
+    from PIL import Image
+
+    try:
+        with Image.open(source) as im:
+            im.load()
+        return None
+    except Exception as e:  # PIL raises OSError, SyntaxError, ValueError... for damaged data
+        return str(e) or type(e).__name__
+
+
+def _truncated_error(path: Path, reason: str) -> DataError:
+    return DataError(f"image {path} is truncated or damaged ({reason}); the file was probably cut off while being "
+                     "copied or downloaded. Copy it again from the original, or delete it (and re-run "
+                     "`splatzoo sfm` if it is part of a COLMAP model)")
+
+
+def check_image_complete(path: Path, data: bytes | None = None) -> None:
+    """A DataError naming `path` when the file is a JPEG or PNG cut short. Reads only the first and last few
+    kilobytes unless the end marker is missing (then the decoder decides); `data`: the file's bytes if in memory."""
+    if data is not None:
+        head, tail = data[:16], data[-_TAIL:]
+    else:
+        with open(path, "rb") as f:
+            head = f.read(16)
+            f.seek(0, os.SEEK_END)
+            f.seek(max(0, f.tell() - _TAIL))
+            tail = f.read()
+    reason = _missing_end(head, tail)
+    if reason is None:
+        return
+    import io
+
+    complaint = _decodes_fully(io.BytesIO(data) if data is not None else path)
+    if complaint is not None:
+        raise _truncated_error(Path(path), f"{reason}; the decoder says: {complaint}")
+
+
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image file from its header, without decoding the pixels."""
+    """(width, height) of an image file from its header, without decoding the pixels; a missing, unreadable or
+    truncated (JPEG/PNG) file is a DataError that names it."""
     from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as im:
-            return int(im.size[0]), int(im.size[1])
+            size = int(im.size[0]), int(im.size[1])
+        check_image_complete(path)
+        return size
     except FileNotFoundError:
         raise DataError(f"image {path} does not exist; restore the file or remove it from the dataset") from None
     except (UnidentifiedImageError, OSError, ValueError) as e:
@@ -49,13 +108,19 @@ def image_has_alpha(path: Path) -> bool:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """Decode to uint8 [H,W,3] RGB or [H,W,4] RGBA (straight alpha). EXIF rotation is ignored, as COLMAP does."""
+    """Decode to uint8 [H,W,3] RGB or [H,W,4] RGBA (straight alpha). EXIF rotation is ignored, as COLMAP does.
+    A truncated JPEG or PNG is a DataError (decoders would fill the missing part with grey)."""
     import cv2
 
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        raw = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise DataError(f"image {path} does not exist; restore the file or remove it from the dataset") from None
+    except OSError as e:
+        raise DataError(f"image {path} cannot be read ({e.strerror or e}); check the file and its permissions") from None
+    check_image_complete(path, raw)
+    data = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED) if raw else None
     if data is None or data.size == 0:
-        if not Path(path).exists():
-            raise DataError(f"image {path} does not exist; restore the file or remove it from the dataset")
         raise DataError(f"image {path} is unreadable or corrupt (cannot decode it); re-export the image "
                         "or delete it and re-run SfM")
     if data.dtype == np.uint16:

@@ -1,0 +1,231 @@
+"""Bad inputs are named: truncated images, camera models that cannot become pinhole images, and malformed Blender
+transforms files each give a DataError that says which file, what is wrong and what to do."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import torch
+
+from splatzoo.data import load_scene
+from splatzoo.data.camera_models import all_models, undistortable_models
+from splatzoo.data.colmap import write_model
+from splatzoo.data.scene import read_image
+from splatzoo.data.synthetic import synthetic_cameras
+from splatzoo.errors import DataError
+
+
+def _photo(h=48, w=64, seed=0) -> np.ndarray:
+    g = np.random.default_rng(seed)
+    return cv2.GaussianBlur((g.random((h, w, 3)) * 255).astype(np.uint8), (5, 5), 1.5)
+
+
+def _colmap_dataset(root: Path, n=3, w=64, h=48, ext=".png") -> tuple[Path, list]:
+    cams = synthetic_cameras("plain", n, w, h)
+    (root / "images").mkdir(parents=True)
+    names = [Path(c.name).with_suffix(ext).name for c in cams]
+    for i, name in enumerate(names):
+        cv2.imwrite(str(root / "images" / name), _photo(h, w, i))
+    write_model(root / "sparse" / "0", cams, names, np.zeros((4, 3)), np.full((4, 3), 0.5))
+    return root, cams
+
+
+def _set_camera(root: Path, model: str, params) -> None:
+    sparse = root / "sparse" / "0"
+    rec = pycolmap.Reconstruction(sparse)
+    cam = pycolmap.Camera(model=model, width=rec.cameras[1].width, height=rec.cameras[1].height, params=list(params),
+                          camera_id=1)
+    rec.cameras[1].model = cam.model
+    rec.cameras[1].params = list(cam.params)
+    rec.write_binary(sparse)
+
+
+# --- truncated images ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+def test_truncated_image_is_named_when_the_scene_loads(tmp_path, ext):
+    root, _ = _colmap_dataset(tmp_path / "d", ext=ext)
+    victim = sorted((root / "images").iterdir())[1]
+    whole = victim.read_bytes()
+    victim.write_bytes(whole[: len(whole) // 2])         # the header survives: the size is still readable
+    assert cv2.imread(str(victim)) is not None or ext == ".png"   # OpenCV decodes a cut JPEG as grey, silently
+    kind = "JPEG data stops before its end-of-image marker" if ext == ".jpg" else "PNG data stops before its IEND"
+    with pytest.raises(DataError, match=rf"image .*{victim.name} is truncated or damaged \(the {kind}.*Copy it again"):
+        load_scene(root)
+    with pytest.raises(DataError, match=rf"{victim.name} is truncated"):
+        read_image(victim)                                # and again when a view is decoded
+    # Padding or extra data after the end marker (some cameras append a trailer) is fine.
+    victim.write_bytes(whole + b"\x00" * 7)
+    load_scene(root)
+    victim.write_bytes(whole + b"TRAILER" * 50)
+    assert read_image(victim).shape == (48, 64, 3)
+
+
+def test_truncated_image_during_blender_load(tmp_path):
+    root = _blender(tmp_path / "b")
+    img = root / "train" / "r_1.png"
+    img.write_bytes(img.read_bytes()[:200])
+    with pytest.raises(DataError, match=r"r_1.png is truncated"):
+        load_scene(root)
+
+
+# --- camera models ---------------------------------------------------------------------------------------------
+
+def test_every_perspective_model_loads_and_equirectangular_is_named(tmp_path):
+    root, _ = _colmap_dataset(tmp_path / "base")
+    models = all_models()
+    assert set(undistortable_models()) == set(models) - {"EQUIRECTANGULAR"}
+    for model in models:
+        d = tmp_path / model
+        (d / "sparse" / "0").mkdir(parents=True)
+        (d / "images").symlink_to(root / "images", target_is_directory=True)
+        proto = pycolmap.Camera.create_from_model_name(1, model, 50.0, 64, 48)
+        rec = pycolmap.Reconstruction(root / "sparse" / "0")
+        rec.cameras[1].model = proto.model
+        rec.cameras[1].params = list(proto.params)
+        rec.write_binary(d / "sparse" / "0")
+        if model == "EQUIRECTANGULAR":
+            with pytest.raises(DataError) as e:
+                load_scene(d, test_every=0)
+            msg = str(e.value)
+            assert "uses the EQUIRECTANGULAR camera model" in msg and "360-degree panorama" in msg
+            assert f"pycolmap {pycolmap.__version__} undistorts only perspective models (SIMPLE_PINHOLE" in msg
+            assert "--camera-model OPENCV" in msg and "only PINHOLE" not in msg
+            continue
+        scene = load_scene(d, test_every=0)
+        assert len(scene.views) == 3 and scene.views[0].image().shape[2] == 3, model
+
+
+@pytest.mark.parametrize("model,params", [
+    ("FISHEYE", [120.0, 121.0, 48.0, 36.0]),               # no terms: pycolmap would copy it unwarped
+    ("SIMPLE_RADIAL_FISHEYE", [120.0, 48.0, 36.0, 0.0]),    # zero terms: likewise
+    ("SIMPLE_DIVISION", [60.0, 48.0, 36.0, -0.2]),
+    ("SIMPLE_RADIAL", [60.0, 48.0, 36.0, 0.0]),             # zero terms: a pinhole camera, loaded directly
+])
+def test_undistorted_pixels_show_their_own_pinhole_rays(tmp_path, model, params):
+    """Each pixel of the photos stores the ideal ray (x/z, y/z) of the camera model as colour: after loading, every
+    pixel's colour must be the ray of that pixel under the loaded PINHOLE K."""
+    w, h = 96, 72
+    dcam = pycolmap.Camera(model=model, width=w, height=h, params=params, camera_id=1)
+    root, cams = _colmap_dataset(tmp_path / "d", n=2, w=w, h=h)
+    ys, xs = np.mgrid[0:h, 0:w] + 0.5
+    ideal = dcam.cam_from_img(np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)).reshape(h, w, 2)
+    scale = 0.45 / np.abs(ideal).max()
+    code = np.concatenate([0.5 + scale * ideal, np.full((h, w, 1), 0.5)], 2)
+    for p in (root / "images").iterdir():
+        cv2.imwrite(str(p), (code[:, :, ::-1] * 255 + 0.5).astype(np.uint8))
+    _set_camera(root, model, params)
+    scene = load_scene(root, test_every=0)
+    for v in scene.views:
+        K = v.camera.K.double().numpy()
+        img = v.image_float().numpy().astype(np.float64)
+        vy, vx = np.mgrid[0:v.camera.height, 0:v.camera.width] + 0.5
+        want = np.stack([(vx - K[0, 2]) / K[0, 0], (vy - K[1, 2]) / K[1, 1]], 2)
+        got = (img[:, :, :2] - 0.5) / scale
+        valid = img.sum(2) > 0.1
+        assert valid.mean() > 0.7
+        err_px = np.abs(got - want)[valid] * K[0, 0]
+        assert err_px.mean() < 0.3 and np.percentile(err_px, 99) < 1.0, (model, err_px.mean(), err_px.max())
+
+
+# --- Blender transforms ---------------------------------------------------------------------------------------
+
+def _blender(root: Path, n: int = 2) -> Path:
+    frames = []
+    (root / "train").mkdir(parents=True)
+    for i, cam in enumerate(synthetic_cameras("plain", n, 16, 12)):
+        cv2.imwrite(str(root / "train" / f"r_{i}.png"), _photo(12, 16, i))
+        c2w = torch.linalg.inv(cam.world_to_camera).numpy() @ np.diag([1.0, -1, -1, 1])
+        frames.append({"file_path": f"./train/r_{i}", "transform_matrix": c2w.tolist()})
+    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+    return root
+
+
+def _edit(root: Path, change) -> Path:
+    f = root / "transforms_train.json"
+    meta = json.loads(f.read_text())
+    change(meta)
+    f.write_text(json.dumps(meta))
+    return f
+
+
+def _frame1(key, value):
+    def change(meta):
+        if value is KeyError:
+            del meta["frames"][1][key]
+        else:
+            meta["frames"][1][key] = value
+    return change
+
+
+def _matrix(edit):
+    def change(meta):
+        m = np.asarray(meta["frames"][1]["transform_matrix"])
+        meta["frames"][1]["transform_matrix"] = edit(m)
+    return change
+
+
+BAD_TRANSFORMS = {
+    "singular": (_matrix(lambda m: (m * [[1, 1, 0, 1]] * [[1], [1], [1], [1]]).tolist()),
+                 r"frame 1 transform_matrix is singular \(its 3x3 rotation part has determinant 0"),
+    "nan": (_matrix(lambda m: [[float("nan") if (r, c) == (0, 3) else v for c, v in enumerate(row)]
+                               for r, row in enumerate(m.tolist())]),
+            r"frame 1 transform_matrix holds NaN or infinity"),
+    "ragged": (_matrix(lambda m: [m[0].tolist(), m[1].tolist(), m[2, :3].tolist(), m[3].tolist()]),
+               r"frame 1 transform_matrix must be 4 rows of 4 numbers .*lengths \[4, 4, 3, 4\]"),
+    "flat": (_matrix(lambda m: m.ravel().tolist()), r"frame 1 transform_matrix must be a list of 4 rows"),
+    "text entry": (_matrix(lambda m: [m[0].tolist(), [1, "a", 0, 0], m[2].tolist(), m[3].tolist()]),
+                   r"frame 1 transform_matrix: row 1 holds 'a', not a number"),
+    "scaled": (_matrix(lambda m: (m * [[2, 2, 2, 1]]).tolist()), r"frame 1 transform_matrix: its 3x3 part is not a "
+                                                                   r"rotation"),
+    "mirrored": (_matrix(lambda m: (m * [[-1, 1, 1, 1]]).tolist()), r"frame 1 transform_matrix is a reflection"),
+    "bottom row": (_matrix(lambda m: [*m[:3].tolist(), [0, 0, 1, 1]]), r"the last row is \[0.0, 0.0, 1.0, 1.0\]"),
+    "no matrix": (_frame1("transform_matrix", KeyError), r"frame 1 has no transform_matrix"),
+    "null path": (_frame1("file_path", None), r"frame 1 has no file_path"),
+    "no path": (_frame1("file_path", KeyError), r"frame 1 has no file_path"),
+    "numeric path": (_frame1("file_path", 7), r"frame 1 file_path must be a string"),
+    "frame not object": (lambda meta: meta["frames"].__setitem__(1, [1, 2]), r"frame 1 must be an object"),
+    "zero angle": (lambda meta: meta.update(camera_angle_x=0), r"camera_angle_x is 0; it must be greater than 0"),
+    "negative angle": (lambda meta: meta.update(camera_angle_x=-0.5), r"camera_angle_x is -0.5; it must be greater"),
+    "degrees": (lambda meta: meta.update(camera_angle_x=40), r"camera_angle_x is 40; it must be less than 3.142 "
+                                                             r"\(the field of view in radians"),
+    "text angle": (lambda meta: meta.update(camera_angle_x="0.7"), r"camera_angle_x must be a number, not '0.7'"),
+    "per-frame angle": (_frame1("camera_angle_x", float("inf")), r"frame 1: camera_angle_x is inf, not a finite"),
+    "negative fl_x": (lambda meta: meta.update(fl_x=-10), r"fl_x is -10; it must be greater than 0"),
+    "no focal": (lambda meta: meta.pop("camera_angle_x"), r"gives no focal length for frame 0"),
+    "frames not list": (lambda meta: meta.update(frames={"a": 1}), r"'frames' must be a list of frames, not a JSON "
+                                                                   r"object"),
+    "no frames": (lambda meta: meta.pop("frames"), r"has no 'frames' list"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TRANSFORMS))
+def test_malformed_blender_transforms(tmp_path, case):
+    change, pattern = BAD_TRANSFORMS[case]
+    root = _blender(tmp_path / "b")
+    f = _edit(root, change)
+    with pytest.raises(DataError, match=pattern) as e:
+        load_scene(root)
+    assert str(f) in str(e.value)
+
+
+def test_blender_transforms_that_are_not_an_object(tmp_path):
+    root = _blender(tmp_path / "b")
+    (root / "transforms_train.json").write_text("[1, 2]")
+    with pytest.raises(DataError, match=r"transforms_train.json must hold a JSON object with a 'frames' list, not a "
+                                        r"list"):
+        load_scene(root)
+
+
+def test_valid_blender_variants_still_load(tmp_path):
+    root = _blender(tmp_path / "b")
+    _edit(root, _matrix(lambda m: m[:3].tolist()))            # 3x4 is accepted
+    _edit(root, lambda meta: meta.update(camera_angle_y=None))  # null is as if absent
+    scene = load_scene(root, test_every=0)
+    assert len(scene.train) == 2
+    assert math.isclose(float(scene.train[0].camera.K[0, 0]), 0.5 * 16 / math.tan(0.35), rel_tol=1e-5)
