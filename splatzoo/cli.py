@@ -4,6 +4,7 @@ Heavy imports (open3d, pycolmap, cv2, the native extension) stay inside the comm
 """
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Optional
@@ -367,8 +368,12 @@ def main() -> None:
     try:
         app()
     except SplatzooError as e:
+        from .training.distributed import launched_world
+
         interrupted = hasattr(e, "exit_code")  # runs.TrainingInterrupted: not an error, a stop on request
-        typer.echo(str(e) if interrupted else f"error: {e}", err=True)
+        rank = int(os.environ.get("RANK", "0")) if launched_world() else None  # one of torchrun's processes
+        if not (interrupted and rank):  # every rank stops alike: rank 0 alone says how to resume
+            typer.echo(str(e) if interrupted else f"error{'' if rank is None else f' (rank {rank})'}: {e}", err=True)
         sys.exit(getattr(e, "exit_code", 2))
     except SystemExit as e:
         # the command line layer ends an interrupt with exit 130 (or "Aborted!", 1); say which signal it was

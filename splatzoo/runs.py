@@ -25,7 +25,7 @@ import socket
 import sys
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -410,72 +410,96 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     SIGINT/SIGTERM stop after the current iteration with a checkpoint (TrainingInterrupted); stop_after stops
     the same way, silently, after that iteration (tests).
     """
-    from .data import load_scene
-    from .zoo import make_config
-
     out = Run(out or Path("runs") / (model or "gabor"))
-    if out.status == "foreign":
-        raise SplatzooError(f"{out.path} exists and is not a splatzoo run folder; choose a new or empty --out")
-    if resume and overwrite:
-        raise SplatzooError("--resume continues a run and --overwrite replaces it: pass one of them")
+    from .training.distributed import launched_world
+
+    world = launched_world()
+    if world:
+        return _train_launched(out, world, data, model, model_options, config, scene_options, resume=resume,
+                               overwrite=overwrite, progress=progress, evaluate_at_end=evaluate_at_end,
+                               stop_after=stop_after, command=command)
     with out.lock(command, create=True):
-        status = out.status
-        if resume:
-            if status == "new":
-                raise SplatzooError(f"cannot resume: {out.path} holds no run (no checkpoint); start it without --resume")
-            if status == "finished":
-                raise SplatzooError(f"{out.path} holds a finished run (model.pt); nothing to resume. Evaluate it "
-                                    f"with `splatzoo eval {out.path}` or train into another --out")
-            record = out.record()
-            asked = _asked_record(model, model_options, config, scene_options, record["model"])
-            if data is None:
-                scene = out.scene(record)
-            else:
-                scene = data if hasattr(data, "train") else load_scene(data, **_load_options(record))
-            root = str(Path(scene.root).expanduser().resolve()) if getattr(scene, "root", None) else None
-            asked.update(data=root, data_fingerprint=scene_fingerprint(scene))
-            conflicts = differences(record, asked)
-            if conflicts:
-                raise SplatzooError(f"--resume continues {out.path} with its own settings, but these differ: "
-                                    + "; ".join(conflicts) + ". Resume without them, or train into another --out")
-            model = record["model"]
-            model_config = make_config(model, **record["model_config"])
-            cfg = out.train_config(record)
-            if config is not None:  # operational fields (backend, checkpoint cadence) may change on resume
-                stated = config if isinstance(config, dict) else dataclasses.asdict(config)
-                cfg = dataclasses.replace(cfg, **{k: v for k, v in stated.items()
-                                                  if k in TrainConfig.operational_fields()}).validate()
-            if root and record.get("data") != root:  # the same dataset, moved: remember where it is now
-                record["data"] = root
-                write_json(out.config_path, record)
-            state = out.checkpoint() if out.checkpoint_path.exists() else None
-        else:
-            if data is None:
-                raise SplatzooError("name the dataset to train on (DATA)")
-            # everything that can fail on bad input fails before an old run is replaced
-            model = model or "gabor"
-            model_config = make_config(model, **(model_options or {}))
-            cfg = (TrainConfig(**config) if isinstance(config, dict) else config or TrainConfig()).validate()
-            scene_options = dict(scene_options or {})
-            normalize_scene_options(scene_options)
-            if status != "new" and not overwrite:
-                what = {"finished": "a finished run (model.pt)", "interrupted": "an interrupted run",
-                        "started": "a run that never wrote a checkpoint"}[status]
-                raise SplatzooError(f"{out.path} already holds {what}; pass --resume to continue it, --overwrite "
-                                    "to replace it, or choose another --out")
-            scene = data if hasattr(data, "train") else load_scene(data, **scene_options)
-            if not scene.train:
-                raise SplatzooError(f"scene {scene.name!r} has no training views")
-            out.clear()
-            write_json(out.config_path, make_record(scene, scene_options, model, model_config, cfg))
-            state = None
-        if not scene.train:
-            raise SplatzooError(f"scene {scene.name!r} has no training views")
+        scene, model, model_config, cfg, state = _prepare(out, data, model, model_options, config, scene_options,
+                                                          resume=resume, overwrite=overwrite)
         if cfg.nproc > 1:
             return _spawn_ranks(out, scene, model, model_config, cfg, state is not None, progress=progress,
                                 evaluate_at_end=evaluate_at_end, stop_after=stop_after)
         return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
                            evaluate_at_end=evaluate_at_end, stop_after=stop_after)
+
+
+def _prepare(out: Run, data, model, model_options, config, scene_options, *, resume: bool, overwrite: bool,
+             world: int = 1):
+    """Check a request against the run folder (its lock held) and make the run ready to train:
+    (scene, model, model_config, cfg, state). `world`: the processes a launcher started (1: none)."""
+    from .data import load_scene
+    from .zoo import make_config
+
+    if out.status == "foreign":
+        raise SplatzooError(f"{out.path} exists and is not a splatzoo run folder; choose a new or empty --out")
+    if resume and overwrite:
+        raise SplatzooError("--resume continues a run and --overwrite replaces it: pass one of them")
+    status = out.status
+    if resume:
+        if status == "new":
+            raise SplatzooError(f"cannot resume: {out.path} holds no run (no checkpoint); start it without --resume")
+        if status == "finished":
+            raise SplatzooError(f"{out.path} holds a finished run (model.pt); nothing to resume. Evaluate it "
+                                f"with `splatzoo eval {out.path}` or train into another --out")
+        record = out.record()
+        asked = _asked_record(model, model_options, config, scene_options, record["model"])
+        if data is None:
+            scene = out.scene(record)
+        else:
+            scene = data if hasattr(data, "train") else load_scene(data, **_load_options(record))
+        root = str(Path(scene.root).expanduser().resolve()) if getattr(scene, "root", None) else None
+        asked.update(data=root, data_fingerprint=scene_fingerprint(scene))
+        conflicts = differences(record, asked)
+        if conflicts:
+            raise SplatzooError(f"--resume continues {out.path} with its own settings, but these differ: "
+                                + "; ".join(conflicts) + ". Resume without them, or train into another --out")
+        model = record["model"]
+        model_config = make_config(model, **record["model_config"])
+        cfg = out.train_config(record)
+        if config is not None:  # operational fields (backend, checkpoint cadence) may change on resume
+            stated = config if isinstance(config, dict) else dataclasses.asdict(config)
+            cfg = dataclasses.replace(cfg, **{k: v for k, v in stated.items()
+                                              if k in TrainConfig.operational_fields()}).validate()
+        if root and record.get("data") != root:  # the same dataset, moved: remember where it is now
+            record["data"] = root
+            write_json(out.config_path, record)
+        if world > 1 and cfg.nproc != world:
+            raise SplatzooError(f"{out.path} trains on {cfg.nproc} processes; resume it with {cfg.nproc} "
+                                f"(torchrun --nproc-per-node {cfg.nproc}), not {world}")
+        if not scene.train:
+            raise SplatzooError(f"scene {scene.name!r} has no training views")
+        state = out.checkpoint() if out.checkpoint_path.exists() else None
+    else:
+        if data is None:
+            raise SplatzooError("name the dataset to train on (DATA)")
+        # everything that can fail on bad input fails before an old run is replaced
+        model = model or "gabor"
+        model_config = make_config(model, **(model_options or {}))
+        cfg = (TrainConfig(**config) if isinstance(config, dict) else config or TrainConfig()).validate()
+        if world > 1:  # the processes a launcher started are the run's ranks
+            if cfg.nproc not in (1, world):
+                raise SplatzooError(f"--nproc {cfg.nproc} disagrees with the {world} processes the launcher "
+                                    "started; leave --nproc out under torchrun")
+            cfg = dataclasses.replace(cfg, nproc=world)
+        scene_options = dict(scene_options or {})
+        normalize_scene_options(scene_options)
+        if status != "new" and not overwrite:
+            what = {"finished": "a finished run (model.pt)", "interrupted": "an interrupted run",
+                    "started": "a run that never wrote a checkpoint"}[status]
+            raise SplatzooError(f"{out.path} already holds {what}; pass --resume to continue it, --overwrite "
+                                "to replace it, or choose another --out")
+        scene = data if hasattr(data, "train") else load_scene(data, **scene_options)
+        if not scene.train:
+            raise SplatzooError(f"scene {scene.name!r} has no training views")
+        out.clear()
+        write_json(out.config_path, make_record(scene, scene_options, model, model_config, cfg))
+        state = None
+    return scene, model, model_config, cfg, state
 
 
 def _load_options(record: dict) -> dict:
@@ -487,16 +511,17 @@ def _load_options(record: dict) -> dict:
 
 
 def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, state, *, progress: bool,
-                evaluate_at_end: bool, stop_after: int | None, comm=None) -> TrainResult:
+                evaluate_at_end: bool, stop_after: int | None, distributed: bool = False) -> TrainResult:
     """The loop around Trainer.step: logs, checkpoints (by iteration, by time, on SIGINT/SIGTERM), the final
-    model and its evaluation. With several ranks every rank runs it and rank 0 alone writes."""
+    model and its evaluation. distributed: this process is one rank of torch.distributed's default process group;
+    every rank runs the loop and rank 0 alone writes."""
     from .rasterizers import select_backend
-    from .training.distributed import Comm
+    from .training.distributed import Comm, ProcessGroupComm
 
-    comm = comm or Comm()
-    writer = comm.rank == 0
     chosen = select_backend(cfg.backend)  # the one decision of backend and device for this run
     backend, device = chosen.name, chosen.torch_device()
+    comm = ProcessGroupComm(device) if distributed else Comm()
+    writer = comm.rank == 0
     try:
         if state is None:
             trainer = Trainer.start(scene, model, model_config, cfg, backend, device, comm=comm)
@@ -566,6 +591,48 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
 
 # --- several processes -------------------------------------------------------------------------------------------
 
+def _train_launched(out: Run, world: int, data, model, model_options, config, scene_options, *, resume: bool,
+                    overwrite: bool, progress: bool, evaluate_at_end: bool, stop_after: int | None,
+                    command: str) -> TrainResult:
+    """`train` in each of the processes a launcher (torchrun) started: rank 0 takes the run's lock, checks the
+    request and prepares the run as one process would, then hands its decisions (scene, model, config, the
+    checkpoint to resume) to the other ranks, so every rank starts from the same state without reading the run
+    folder. The rendezvous comes from the launcher's environment (MASTER_ADDR, MASTER_PORT)."""
+    from datetime import timedelta
+
+    import torch.distributed as dist
+
+    rank = int(os.environ["RANK"])
+    if torch.cuda.is_available():  # NCCL for CUDA tensors, gloo for CPU ones: the backend is decided later
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", rank)) % torch.cuda.device_count())
+        group_backend = "cpu:gloo,cuda:nccl"
+    else:
+        group_backend = "gloo"
+        local_world = int(os.environ.get("LOCAL_WORLD_SIZE", world))
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_world))  # the ranks on a machine share its cores
+    dist.init_process_group(group_backend, timeout=timedelta(minutes=10))
+    try:
+        with ExitStack() as held:
+            decided = [None, None]  # [failure message, (scene, model, model_config, cfg, state)]
+            if rank == 0:
+                try:
+                    held.enter_context(out.lock(command, create=True))
+                    decided[1] = _prepare(out, data, model, model_options, config, scene_options, resume=resume,
+                                          overwrite=overwrite, world=world)
+                except Exception as e:
+                    decided[0] = str(e) or type(e).__name__
+                    dist.broadcast_object_list(decided, src=0)
+                    raise
+            dist.broadcast_object_list(decided, src=0)
+            if decided[0] is not None:
+                raise SplatzooError(decided[0])
+            scene, model, model_config, cfg, state = decided[1]
+            return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
+                               evaluate_at_end=evaluate_at_end, stop_after=stop_after, distributed=True)
+    finally:
+        dist.destroy_process_group()
+
+
 def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, resume: bool, *, progress: bool,
                  evaluate_at_end: bool, stop_after: int | None) -> TrainResult:
     """Train on cfg.nproc processes (torch.distributed: gloo on CPU, NCCL on CUDA) while this process holds the
@@ -624,7 +691,6 @@ def _rank_main(rank: int, world: int, port: int, run_path: str, scene, model: st
 
     import torch.distributed as dist
 
-    from .training.distributed import ProcessGroupComm
     from .zoo import make_config
 
     cfg = TrainConfig(**cfg)
@@ -640,7 +706,7 @@ def _rank_main(rank: int, world: int, port: int, run_path: str, scene, model: st
         run = Run(run_path)
         _train_loop(run, scene, model, make_config(model, **model_config), cfg,
                     run.checkpoint() if resume else None, progress=progress, evaluate_at_end=evaluate_at_end,
-                    stop_after=stop_after, comm=ProcessGroupComm())
+                    stop_after=stop_after, distributed=True)
     except TrainingInterrupted as e:
         if rank == 0:
             print(e, file=sys.stderr, flush=True)

@@ -1,7 +1,9 @@
 """Training on several processes (torch.distributed, gloo on the CPU): batches of views, identical decisions on
 every rank, checkpoints and resume, a dying rank ending the run clearly."""
+import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -12,7 +14,7 @@ import torch
 
 from splatzoo import load_model
 from splatzoo.errors import SplatzooError
-from splatzoo.runs import train
+from splatzoo.runs import Run, train
 from splatzoo.training import TrainConfig
 
 # densification inside the run (steps 10 and 20), so that "the same decisions on every rank" is tested
@@ -35,9 +37,16 @@ def assert_close(a, b, rtol=1e-4, atol=1e-6):
         assert torch.allclose(sa[k], sb[k], rtol=rtol, atol=atol), (k, (sa[k] - sb[k]).abs().max())
 
 
-def test_batches_and_processes_agree(tiny_data, tmp_path):
-    one = train(tiny_data, "gabor", {}, TrainConfig(**RUN, batch_size=2), tmp_path / "b2", progress=False,
-                evaluate_at_end=False).model
+@pytest.fixture(scope="module")
+def batch_of_two(tiny_data, tmp_path_factory):
+    """One process, two views per step: what two ranks of one view each must reproduce."""
+    out = tmp_path_factory.mktemp("runs") / "b2"
+    train(tiny_data, "gabor", {}, TrainConfig(**RUN, batch_size=2), out, progress=False, evaluate_at_end=False)
+    return out
+
+
+def test_batches_and_processes_agree(tiny_data, batch_of_two, tmp_path):
+    one = load_model(batch_of_two / "model.pt")
     two = train(tiny_data, "gabor", {}, TrainConfig(**RUN, nproc=2), tmp_path / "n2", progress=False,
                 evaluate_at_end=False).model
     assert one.num_primitives != RUN["num_primitives"], "densification should have changed the count"
@@ -46,68 +55,52 @@ def test_batches_and_processes_agree(tiny_data, tmp_path):
                    evaluate_at_end=False).model
     assert not torch.equal(single.means, one.means)  # a batch of two is a different run, not the same one
     logs = (tmp_path / "n2" / "train_log.jsonl").read_text().splitlines()
-    assert len(logs) == len((tmp_path / "b2" / "train_log.jsonl").read_text().splitlines())
+    assert len(logs) == len((batch_of_two / "train_log.jsonl").read_text().splitlines())
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                stat = (d / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                out.append(int(d.name))
-    return out
+# what each process a launcher starts runs: train() finds its rank in the environment
+_LAUNCHED = """
+import json, sys
+from splatzoo.runs import train
+from splatzoo.training import TrainConfig
+data, out, config, stop_after = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), int(sys.argv[4])
+resume = config is None
+train(None if resume else data, None if resume else "gabor", None, None if resume else TrainConfig(**config), out,
+      resume=resume, progress=False, evaluate_at_end=False, stop_after=stop_after or None)
+"""
 
 
-def _start(data, out):
-    args = [sys.executable, "-m", "splatzoo.cli", "train", str(data), "--model", "gabor", "--out", str(out),
-            "--nproc", "2", "--iterations", "150", "--num-primitives", "150", "--backend", "cpu",
-            "--checkpoint-every", "10"]
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    deadline = time.monotonic() + 180
-    while not (out / "checkpoint.pt").exists():
-        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[0]
-        time.sleep(0.05)
-    return proc
+def _torchrun(*args):
+    return subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+                           *map(str, args)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
-def test_sigterm_checkpoints_and_resume_matches(tiny_data, tmp_path):
-    reference = train(tiny_data, "gabor", {}, TrainConfig(iterations=150, num_primitives=150, backend="cpu",
-                                                          nproc=2, checkpoint_every=10),
-                      tmp_path / "reference", progress=False, evaluate_at_end=False).model
-    run = tmp_path / "run"
-    proc = _start(tiny_data, run)
-    time.sleep(0.5)
-    proc.send_signal(signal.SIGTERM)
-    output, _ = proc.communicate(timeout=180)
-    assert proc.returncode == 143, output
-    assert "--resume" in output and "Traceback" not in output, output
-    assert not (run / "model.pt").exists()
-    r = subprocess.run([sys.executable, "-m", "splatzoo.cli", "train", "--resume", "--out", str(run)],
-                       capture_output=True, text=True)
+def test_torchrun_matches_a_batch_and_resumes(tiny_data, batch_of_two, tmp_path):
+    script = tmp_path / "launched.py"
+    script.write_text(_LAUNCHED)
+    run = tmp_path / "launched"
+    r = _torchrun(script, tiny_data, run, json.dumps(RUN), 12)  # stops after iteration 12 with a checkpoint
     assert r.returncode == 0, r.stderr
-    assert_close(reference, load_model(run / "model.pt"), rtol=0, atol=0)
-    r = subprocess.run([sys.executable, "-m", "splatzoo.cli", "train", "--resume", "--out", str(run), "--nproc", "1"],
-                       capture_output=True, text=True)
-    assert r.returncode != 0
+    assert Run(run).status == "interrupted" and Run(run).train_config().nproc == 2
+    r = _torchrun(script, tiny_data, run, "null", 0)  # every rank resumes from rank 0's checkpoint
+    assert r.returncode == 0, r.stderr
+    assert_close(load_model(batch_of_two / "model.pt"), load_model(run / "model.pt"))
 
 
-def test_a_dying_rank_ends_the_run_clearly(tiny_data, tmp_path):
-    run = tmp_path / "run"
-    proc = _start(tiny_data, run)
-    ranks = []
-    deadline = time.monotonic() + 60
-    while len(ranks) < 2 and time.monotonic() < deadline:  # the spawn start method adds a resource tracker
-        ranks = [p for p in _children(proc.pid) if "spawn_main" in Path(f"/proc/{p}/cmdline").read_text()]
-        time.sleep(0.05)
-    os.kill(max(ranks), signal.SIGKILL)
-    output, _ = proc.communicate(timeout=180)
-    assert proc.returncode == 2, output
-    assert "rank" in output and "SIGKILL" in output and "--resume" in output, output
-    assert (run / "checkpoint.pt").exists()
-    with pytest.raises(SplatzooError, match="nproc"):
-        train(tiny_data, "gabor", {}, {"nproc": 3}, run, resume=True, progress=False)
+def test_a_refused_launch_ends_every_rank(tmp_path):
+    """Any launcher (torchrun, srun, mpirun) sets RANK and WORLD_SIZE: a request rank 0 refuses reaches every rank,
+    none waits for the others, and each says why."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    procs = [subprocess.Popen([sys.executable, "-m", "splatzoo", "train", "--resume", "--out", str(tmp_path / "none")],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                              env={**os.environ, "RANK": str(rank), "LOCAL_RANK": str(rank), "WORLD_SIZE": "2",
+                                   "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)})
+             for rank in range(2)]
+    for rank, proc in enumerate(procs):
+        output = proc.communicate(timeout=120)[0]
+        assert proc.returncode == 2, output
+        assert f"error (rank {rank}): cannot resume" in output and "Traceback" not in output, output
+    assert not (tmp_path / "none" / "config.json").exists()

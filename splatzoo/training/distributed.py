@@ -6,7 +6,19 @@ the densification statistics) are summed over the ranks. One process is `Comm()`
 """
 from __future__ import annotations
 
+import os
+
 import torch
+
+
+def launched_world() -> int:
+    """The number of processes when a launcher such as torchrun started this one as a rank of several (it sets
+    RANK and WORLD_SIZE), else 0."""
+    try:
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+    except ValueError:
+        return 0
+    return world if world > 1 and "RANK" in os.environ else 0
 
 
 class Comm:
@@ -26,19 +38,21 @@ class Comm:
 
 
 class ProcessGroupComm(Comm):
-    """torch.distributed's default process group (gloo on CPU, NCCL on CUDA)."""
+    """torch.distributed's default process group (gloo on CPU, NCCL on CUDA); collectives run on `device`, the
+    training device."""
 
-    def __init__(self):
+    def __init__(self, device: torch.device | str = "cpu"):
         import torch.distributed as dist
 
         self.dist = dist
+        self.device = torch.device(device)
         self.rank, self.world = dist.get_rank(), dist.get_world_size()
 
     def sum_(self, tensors: list[torch.Tensor]) -> None:
         if not tensors:
             return
         # one flat buffer: one collective per step instead of one per parameter
-        device = self._device()
+        device = self.device
         flat = torch.cat([t.reshape(-1).to(device, torch.float32) for t in tensors])
         self.dist.all_reduce(flat)
         offset = 0
@@ -48,13 +62,9 @@ class ProcessGroupComm(Comm):
             offset += n
 
     def any(self, flag: bool) -> bool:
-        t = torch.tensor([1.0 if flag else 0.0], device=self._device())
+        t = torch.tensor([1.0 if flag else 0.0], device=self.device)
         self.dist.all_reduce(t)
         return bool(t.item() > 0)
 
     def barrier(self) -> None:
         self.dist.barrier()
-
-    def _device(self) -> torch.device:
-        return torch.device("cuda", torch.cuda.current_device()) if self.dist.get_backend() == "nccl" \
-            else torch.device("cpu")

@@ -1,0 +1,4 @@
+"""`python -m splatzoo` (and `torchrun -m splatzoo train ...`) runs the command line."""
+from .cli import main
+
+main()
