@@ -470,7 +470,7 @@ def test_cuda_emulation_primitives(tmp_path):
 def test_an_installed_package_carries_the_native_sources(tmp_path):
     """A regular (non-editable) install must ship splatzoo/csrc, or the native backend is gone for pip users."""
     src = tmp_path / "src"
-    shutil.copytree(CSRC.parents[1], src, ignore=shutil.ignore_patterns(".git", "runs", "build", "*.egg-info",
+    shutil.copytree(CSRC.parents[1], src, ignore=shutil.ignore_patterns(".*", "runs", "build", "*.egg-info",
                                                                       "__pycache__", ".pytest_cache", "tests"))
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
