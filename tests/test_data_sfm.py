@@ -83,7 +83,8 @@ def test_sfm_in_place_adds_a_model_next_to_the_images(tmp_path):
     messages = []
     res = run_sfm(data / "images", data, progress=messages.append)
     assert res.num_registered >= 9 and (data / "sparse" / "0" / "points3D.bin").is_file()
-    assert sorted(p.name for p in data.iterdir()) == ["database.db", "images", "notes", "sparse"]
+    assert sorted(p.name for p in data.iterdir()) == ["database.db", "images", "notes", "sfm_report.json",
+                                                     "sfm_report.png", "sparse"]
     assert any("registered" in m for m in messages)
     with pytest.raises(DataError, match="already exists"):
         run_sfm(data / "images", data, progress=False)

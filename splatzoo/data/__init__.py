@@ -20,5 +20,5 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["Scene", "View", "DatasetFormat", "load_scene", "detect_format", "list_formats", "register_format", "run_sfm",
-           "SfMResult", "similarity_align", "make_synthetic_scene", "list_scenes", "synthetic_cameras"]
+__all__ = ["Scene", "View", "DatasetFormat", "load_scene", "detect_format", "list_formats", "register_format",
+           "run_sfm", "SfMResult", "similarity_align", "make_synthetic_scene", "list_scenes", "synthetic_cameras"]

@@ -94,3 +94,69 @@ def for_undistortion(cam):
               _FISHEYE_NUDGE, 0.0, 0.0, 0.0]
     return pycolmap.Camera(model="OPENCV_FISHEYE", width=cam.width, height=cam.height, params=params,
                            camera_id=cam.camera_id)
+
+
+# --- plausibility of a fitted camera ----------------------------------------------------------------------------
+
+def projection_profile(cam, directions: int = 32, steps: int = 1500) -> dict:
+    """How the camera maps rays to pixels, swept outward from the optical axis in several directions.
+
+    fold_px: distance in pixels from the principal point at which the image stops moving outward while still inside
+    the photo (the distortion polynomial turns back: undistorting folds the photo onto itself as ghost rings), or
+    None when the mapping grows all the way to the photo's border. corner_px: distance to the farthest corner.
+    corner_distortion: radial displacement at the corners relative to a pinhole camera of the same focal length
+    (-0.1: barrel, 10 % inward), None for fisheye models (distorted by design) and for folding cameras.
+    """
+    w, h = cam.width, cam.height
+    cx, cy = cam.principal_point_x, cam.principal_point_y
+    corners = np.array([[0, 0], [w, 0], [0, h], [w, h]], dtype=np.float64) - [cx, cy]
+    corner_px = float(np.linalg.norm(corners, axis=1).max())
+    # ray directions (x, y) in the camera's normalised plane toward the corners and all around
+    phi = np.concatenate([np.linspace(0, 2 * np.pi, directions, endpoint=False),
+                          np.arctan2(corners[:, 1] / cam.focal_length_y, corners[:, 0] / cam.focal_length_x)])
+    theta = np.linspace(0, np.radians(89.9), steps)
+    T, P = np.meshgrid(theta, phi)                                    # [D, S]
+    rays = np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1).reshape(-1, 3)
+    with np.errstate(all="ignore"):
+        xy = np.asarray(cam.img_from_cam(rays, check_cheirality=False), dtype=np.float64).reshape(len(phi), steps, 2)
+        rho = np.linalg.norm(xy - [cx, cy], axis=2)
+        inside = (xy[..., 0] >= 0) & (xy[..., 0] <= w) & (xy[..., 1] >= 0) & (xy[..., 1] <= h) & np.isfinite(rho)
+    fold_px = None
+    for d in range(len(phi)):
+        leaves = np.flatnonzero(~inside[d])
+        end = leaves[0] if len(leaves) else steps          # samples before the ray leaves the photo
+        r = rho[d, :end]
+        turn = np.flatnonzero(~(np.diff(r) > 0))           # not growing (or not finite)
+        if len(turn):
+            at = float(r[turn[0]])
+            fold_px = at if fold_px is None else min(fold_px, at)
+        elif end < steps and not np.isfinite(rho[d, end]):
+            at = float(r[-1]) if len(r) else 0.0
+            fold_px = at if fold_px is None else min(fold_px, at)
+    corner_distortion = None
+    if fold_px is None and not cam.is_perspective_fisheye():
+        f = float(np.sqrt(cam.focal_length_x * cam.focal_length_y))
+        worst = 0.0
+        for d in range(directions, len(phi)):               # the corner directions
+            leaves = np.flatnonzero(~inside[d])
+            i = (leaves[0] if len(leaves) else steps) - 1
+            if i > 0:
+                pinhole = f * np.tan(theta[i])
+                ratio = float(rho[d, i] / pinhole - 1)
+                worst = ratio if abs(ratio) > abs(worst) else worst
+        corner_distortion = worst
+    return {"fold_px": fold_px, "corner_px": corner_px, "corner_distortion": corner_distortion}
+
+
+def undistorted_size(cam) -> tuple[int, int] | None:
+    """(width, height) of the pinhole image pycolmap's undistorter makes from this camera's photos (None: it cannot)."""
+    pycolmap = import_pycolmap()
+    if not cam.is_perspective():
+        return None
+    if is_pinhole(cam):
+        return cam.width, cam.height
+    try:
+        und = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), for_undistortion(cam) or cam)
+    except Exception:  # a camera pycolmap rejects: no canvas to compare with
+        return None
+    return int(und.width), int(und.height)

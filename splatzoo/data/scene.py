@@ -117,7 +117,8 @@ def read_image(path: Path) -> np.ndarray:
     except FileNotFoundError:
         raise DataError(f"image {path} does not exist; restore the file or remove it from the dataset") from None
     except OSError as e:
-        raise DataError(f"image {path} cannot be read ({e.strerror or e}); check the file and its permissions") from None
+        raise DataError(f"image {path} cannot be read ({e.strerror or e}); check the file and its "
+                        "permissions") from None
     check_image_complete(path, raw)
     data = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED) if raw else None
     if data is None or data.size == 0:
