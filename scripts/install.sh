@@ -211,7 +211,7 @@ took
 
 # ---- 4. splatzoo, editable, with its dependencies
 step "splatzoo and its dependencies"
-pip_install -e ".[mesh,dev]"
+pip_install -e ".[mesh,viewer,dev]"
 took
 
 # ---- 5. the LPIPS weights, and a check

@@ -184,20 +184,49 @@ def train_command(
                                    "sqrt(views per step), Adam betas to that power)"),
     nproc: int = typer.Option(1, "--nproc", help="data-parallel processes (torch.distributed: gloo on CPU, NCCL "
                               "on CUDA); each renders --batch-size views per step"),
+    viewer: bool = typer.Option(False, "--viewer", help="watch training live in the browser (see `splatzoo view`); "
+                                "it stays open after training until Ctrl-C"),
+    viewer_port: int = typer.Option(8080, "--viewer-port", help="port of the live viewer"),
+    viewer_host: str = typer.Option("127.0.0.1", "--viewer-host", help="address the live viewer listens on"),
 ) -> None:
     """Train a model on a dataset. Model options follow the model name, e.g. `--model gabor --n-waves 8`.
 
     The fixed-count comparison of the paper: `--no-densify --num-primitives N`. Ctrl-C (or SIGTERM) stops after
     the current iteration with a checkpoint; `--resume` continues from it.
     """
+    given = _given(ctx)
+    out = out or Path("runs") / model
+    values = {k: v for k, v in ctx.params.items() if k in _TRAIN_FIELDS}
+    watch = None
+    if viewer:
+        from .viewer import TrainingWatch
+
+        if nproc > 1:
+            raise typer.BadParameter("the live viewer watches one process; drop --viewer or --nproc")
+        watch = TrainingWatch(Path(out).name, host=viewer_host, port=viewer_port, backend=backend,
+                              snapshot_dir=Path(out) / "renders")
+        typer.echo(f"live viewer: {watch.viewer.url}")
+    try:
+        result = _train(ctx, data, model, out, resume, overwrite, given, values,
+                        _scene_options(resolution, max_width, test_every, white_background), watch)
+    except BaseException:
+        if watch is not None:
+            watch.viewer.stop()
+        raise
+    _report(result)
+    if watch is not None:
+        typer.echo(f"training finished; the viewer stays open at {watch.viewer.url} (Ctrl-C to stop)")
+        try:
+            watch.viewer.serve_forever()
+        except KeyboardInterrupt:
+            typer.echo("viewer stopped")
+
+
+def _train(ctx, data, model, out, resume, overwrite, given, values, scene_options, watch):
     from .options import parse_model_args
     from .runs import Run, train
     from .training import TrainConfig
 
-    given = _given(ctx)
-    out = out or Path("runs") / model
-    values = {k: v for k, v in ctx.params.items() if k in _TRAIN_FIELDS}
-    scene_options = _scene_options(resolution, max_width, test_every, white_background)
     if resume:  # only what was typed is checked against the run; the rest comes from its record
         run = Run(out)
         options_model = model if "model" in given or run.status in ("new", "foreign") else run.record()["model"]
@@ -205,12 +234,17 @@ def train_command(
                        {k: v for k, v in values.items() if k in given}, out, resume=True,
                        scene_options={k: v for k, v in scene_options.items()
                                       if {"resolution": "resolution", "max_width": "max_width",
-                                          "test_every": "test_every", "background": "white_background"}[k] in given})
+                                          "test_every": "test_every", "background": "white_background"}[k] in given},
+                       watch=watch)
     else:
         if data is None:
             raise typer.BadParameter("give the dataset folder DATA (only --resume can take it from the run)")
         result = train(data, model, parse_model_args(model, list(ctx.args)), TrainConfig(**values), out,
-                       overwrite=overwrite, scene_options=scene_options)
+                       overwrite=overwrite, scene_options=scene_options, watch=watch)
+    return result
+
+
+def _report(result) -> None:
     m = result.metrics
     if m:
         typer.echo(f"{result.model.name}: PSNR {_fmt(m.get('psnr'), '.2f')}  SSIM {_fmt(m.get('ssim'), '.4f')}  "
@@ -254,6 +288,27 @@ def render_command(
 
     paths = render_run(run, split=split, video=video, backend=backend, frames=frames)
     typer.echo(f"wrote {len(paths)} files under {Path(run) / 'renders'}")
+
+
+@app.command("view")
+def view_command(
+    runs: list[Path] = typer.Argument(..., metavar="RUN", help="run folders (a folder of runs, such as runs/compare, "
+                                      "stands for all of them)"),
+    port: int = typer.Option(8080, "--port", "-p", help="port to serve on"),
+    host: str = typer.Option("127.0.0.1", "--host", help="address to listen on (127.0.0.1: this machine only; "
+                             "0.0.0.0 opens the viewer to the network)"),
+    backend: str = _BACKEND,
+) -> None:
+    """Look at trained runs in the browser: orbit and fly, training cameras, render modes, runs side by side."""
+    from .viewer import view
+
+    viewer = view(runs, host=host, port=port, backend=backend)
+    typer.echo(f"viewer: {viewer.url}  ({len(viewer.sources)} model{'s' if len(viewer.sources) > 1 else ''}; "
+               "Ctrl-C to stop)")
+    try:
+        viewer.serve_forever()
+    except KeyboardInterrupt:
+        typer.echo("viewer stopped")
 
 
 @app.command("compare")

@@ -400,7 +400,7 @@ def _asked_record(model, model_options, config, scene_options, recorded_model: s
 def train(data, model: str | None = None, model_options: dict | None = None, config: TrainConfig | dict | None = None,
           out=None, *, resume: bool = False, overwrite: bool = False, progress: bool = True,
           evaluate_at_end: bool = True, stop_after: int | None = None, scene_options: dict | None = None,
-          command: str = "splatzoo train") -> TrainResult:
+          command: str = "splatzoo train", watch=None) -> TrainResult:
     """Train `model` (default gabor) on `data` (a dataset path or a loaded Scene) into the run folder `out`.
 
     resume: continue the run in `out` with its recorded settings; the result is bit-identical to an uninterrupted
@@ -408,12 +408,16 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     field, a dict only its keys; `data` may be None (the recorded dataset) and must otherwise be the same
     dataset. overwrite: replace a run in `out`.
     SIGINT/SIGTERM stop after the current iteration with a checkpoint (TrainingInterrupted); stop_after stops
-    the same way, silently, after that iteration (tests).
+    the same way, silently, after that iteration (tests). watch(net, iteration, scene, final): called after every
+    step and at the end (a live viewer); one process only.
     """
     out = Run(out or Path("runs") / (model or "gabor"))
     from .training.distributed import launched_world
 
     world = launched_world()
+    if watch is not None and (world or (config.nproc if isinstance(config, TrainConfig) else
+                                        (config or {}).get("nproc", 1)) > 1):
+        raise SplatzooError("the live viewer watches training on one process; drop --viewer or --nproc")
     if world:
         return _train_launched(out, world, data, model, model_options, config, scene_options, resume=resume,
                                overwrite=overwrite, progress=progress, evaluate_at_end=evaluate_at_end,
@@ -422,10 +426,13 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
         scene, model, model_config, cfg, state = _prepare(out, data, model, model_options, config, scene_options,
                                                           resume=resume, overwrite=overwrite)
         if cfg.nproc > 1:
+            if watch is not None:
+                raise SplatzooError(f"{out.path} trains on {cfg.nproc} processes; the live viewer watches one. "
+                                    "Resume without --viewer")
             return _spawn_ranks(out, scene, model, model_config, cfg, state is not None, progress=progress,
                                 evaluate_at_end=evaluate_at_end, stop_after=stop_after)
         return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
-                           evaluate_at_end=evaluate_at_end, stop_after=stop_after)
+                           evaluate_at_end=evaluate_at_end, stop_after=stop_after, watch=watch)
 
 
 def _prepare(out: Run, data, model, model_options, config, scene_options, *, resume: bool, overwrite: bool,
@@ -511,7 +518,7 @@ def _load_options(record: dict) -> dict:
 
 
 def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, state, *, progress: bool,
-                evaluate_at_end: bool, stop_after: int | None, distributed: bool = False) -> TrainResult:
+                evaluate_at_end: bool, stop_after: int | None, distributed: bool = False, watch=None) -> TrainResult:
     """The loop around Trainer.step: logs, checkpoints (by iteration, by time, on SIGINT/SIGTERM), the final
     model and its evaluation. distributed: this process is one rank of torch.distributed's default process group;
     every rank runs the loop and rank 0 alone writes."""
@@ -552,6 +559,8 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
                 for rec in result["records"]:
                     log.write(json_line(rec))
                 log.flush()
+                if watch is not None:
+                    watch(trainer.net, step, scene, final=step == stop)
                 ema = result["loss"] if ema is None else 0.9 * ema + 0.1 * result["loss"]
                 bar.update(step, f"loss {ema:.4f}  {trainer.net.num_primitives} prims  "
                                  f"{step / max(trainer.train_seconds, 1e-9):.1f} it/s")

@@ -67,7 +67,7 @@ def test_the_system_python_gets_a_venv_in_the_checkout(dry_run):
     pip = [i for i, line in enumerate(lines) if "-m pip install" in line]
     assert [lines[i].split("would run: ")[1].split(" -m pip")[0] for i in pip] == [f"{venv}/bin/python"] * 3
     # torch, pinned, comes before the package that asks for it
-    assert "torch==2.13.0" in lines[pip[0]] and "-e .[mesh,dev]" in lines[pip[1]]
+    assert "torch==2.13.0" in lines[pip[0]] and "-e .[mesh,viewer,dev]" in lines[pip[1]]
     assert [f"[{i}/5]" for i in range(1, 6)] == [line.split()[0] for line in lines if line.startswith("[")]
     assert "source .venv/bin/activate" not in r.stdout  # a dry run makes nothing to activate
 
@@ -95,7 +95,7 @@ def test_no_venv_installs_into_the_interpreter_unless_it_is_externally_managed(d
     r = dry_run("--no-venv", managed=0, base_prefix="/opt/python")
     assert r.returncode == 0, r.stderr
     assert "goes into the interpreter itself" in r.stdout and "-m venv" not in r.stdout
-    assert f"would run: {dry_run.py} -m pip install -e .[mesh,dev]" in r.stdout
+    assert f"would run: {dry_run.py} -m pip install -e .[mesh,viewer,dev]" in r.stdout
 
 
 def test_missing_venv_support_is_installed_with_apt_or_explained(dry_run):
@@ -131,7 +131,7 @@ def test_the_readme_set_up_is_what_ci_runs():
     commands = [line.split("#")[0].strip() for line in quick.splitlines() if line.strip()]
     assert commands[:2] == ["bash scripts/install.sh", "source .venv/bin/activate"]
     ci = [line.strip() for line in (REPO / ".ci" / "run").read_text().splitlines()
-          if line.strip() and not line.startswith(("#", "set ", "cd ", "apt-get "))]
+          if line.strip() and not line.startswith(("#", "set ", "cd ", "apt-get ", "export "))]
     set_up_and_tests = [c for c in commands if c in ci]
     assert set_up_and_tests == ci and "python3 -m pytest -q" in ci, (ci, commands)
 
