@@ -484,6 +484,7 @@ class _Session:
         self.wake = threading.Event()
         self.moved_at = time.monotonic()
         self.full_key = None  # what the last full-size frame showed (camera, settings, model versions)
+        self.moving_key = None  # and the last small one
         self.closed = False
         self.frames = {"moving": 0, "full": 0}
         self.last_full = None  # (camera, image) of the last full-size frame sent: tests compare it
@@ -593,8 +594,9 @@ class _Session:
                 continue
             key = (cam.world_to_camera.numpy().tobytes(), cam.K.numpy().tobytes(), self.mode.value,
                    self.layout.value, self.shown.value, tuple(s.version for s in self._shown()))
-            if not moving and key == self.full_key:  # the full-size frame is on screen: wait for a change
-                self.wake.wait(0.5 if any(s.live for s in self.viewer.sources) else 5.0)
+            if key == (self.moving_key if moving else self.full_key):  # on screen already: wait for a change
+                self.wake.wait(SETTLE_SECONDS / 5 if moving else 0.5 if any(s.live for s in self.viewer.sources)
+                               else 5.0)
                 self.wake.clear()
                 continue
             try:
@@ -612,7 +614,9 @@ class _Session:
                 self.wake.wait(1.0)
                 continue
             self.frames["moving" if moving else "full"] += 1
-            if not moving:
+            if moving:
+                self.moving_key = key
+            else:
                 self.full_key = key
                 self.last_full = (cam, image)
                 self.full_sent.set()
