@@ -57,17 +57,28 @@ def _root(
 def sfm_command(
     images_dir: Path = typer.Argument(..., metavar="IMAGES", help="Folder of photos (png/jpg) of one static subject."),
     out: Path = typer.Option(..., "--out", "-o", help="Dataset folder to create (images/, sparse/0/)."),
-    camera_model: str = typer.Option("SIMPLE_RADIAL", help="COLMAP camera model to estimate; non-pinhole "
-                                      "models are undistorted automatically when the dataset is loaded."),
+    camera_model: str = typer.Option("SIMPLE_RADIAL", "--camera-model",
+                                     help="COLMAP camera model to fit (case-insensitive): SIMPLE_RADIAL, SIMPLE_PINHOLE "
+                                     "(no distortion), PINHOLE, OPENCV, OPENCV_FISHEYE, ...; non-pinhole models are "
+                                     "undistorted when the dataset is loaded."),
+    focal: Optional[float] = typer.Option(None, "--focal", metavar="PIXELS",
+                                          help="Focal length of the photos in pixels, if known (lens mm / sensor width "
+                                          "mm x image width): SfM starts from it instead of EXIF or 1.2 x the longer "
+                                          "side, and the checks compare the fit with it."),
+    retry: bool = typer.Option(True, "--retry/--no-retry", help="When the fit looks implausible, map again with "
+                               "SIMPLE_PINHOLE (focal held at --focal if given) and keep the better fit."),
+    report: bool = typer.Option(True, "--report/--no-report", help="Write sfm_report.png (cameras and points seen "
+                                "from above) and sfm_report.json into the output folder."),
     single_camera: bool = typer.Option(True, help="One camera shared by all photos of one size."),
     seed: int = typer.Option(0, help="Random seed for the mapper."),
     overwrite: bool = typer.Option(False, help="Replace an existing output folder."),
 ) -> None:
-    """Structure from motion on the CPU (pycolmap): poses and a sparse point cloud from photos."""
+    """Structure from motion on the CPU (pycolmap): poses and a sparse point cloud from photos, checked (distortion
+    that folds, a focal far from the prior, few points) before the dataset is written."""
     from .data.sfm import run_sfm
 
     res = run_sfm(images_dir, out, progress=typer.echo, camera_model=camera_model, single_camera=single_camera,
-                  seed=seed, overwrite=overwrite)
+                  seed=seed, overwrite=overwrite, focal=focal, retry=retry, report=report)
     if res.num_registered < res.num_images:
         typer.echo(f"warning: only {res.num_registered} of {res.num_images} images registered", err=True)
 

@@ -78,3 +78,17 @@ def test_readme_python_snippet_runs_as_written(tmp_path, monkeypatch):
     out = scope["out"]
     assert out.alpha.max() > 0.5 and out.rgb.max() > 0  # it rendered something: the sphere covers the view centre
     assert (tmp_path / "model.pt").is_file()
+
+
+def test_sfm_options_reach_the_mapper(tmp_path):
+    """--focal is passed on (a bad one is refused before anything is written)."""
+    images = tmp_path / "photos"
+    images.mkdir()
+    import numpy as np
+    import cv2
+
+    for i in range(3):
+        cv2.imwrite(str(images / f"p{i}.png"), np.full((32, 32, 3), 40 * i, np.uint8))
+    result = runner.invoke(app, ["sfm", str(images), "--out", str(tmp_path / "out"), "--focal", "-5", "--no-retry"])
+    assert result.exit_code != 0 and "focal" in str(result.exception or result.output)
+    assert not (tmp_path / "out").exists()
