@@ -94,8 +94,11 @@ def synth_command(
     sfm: bool = typer.Option(False, "--sfm", help="Recover poses and points with SfM instead of the true ones."),
     list_scenes: bool = typer.Option(False, "--list", help="List the synthetic scenes and exit."),
     overwrite: bool = typer.Option(False, help="Replace an existing output folder."),
+    background: str = typer.Option("black", "--background", help="colour behind the object: black, white or R,G,B "
+                                   "(an object photographed on a white sheet: white)"),
 ) -> None:
     """Render a synthetic high-frequency benchmark scene as a COLMAP dataset (with its true mesh)."""
+    from .data.background import parse_background
     from .data.synthetic import list_scenes as scenes, make_synthetic_scene
 
     if list_scenes:
@@ -104,8 +107,11 @@ def synth_command(
         return
     if name is None or out is None:
         raise typer.BadParameter("give a scene NAME and --out DATA (or --list to see the scenes)")
+    colour = parse_background(background)
+    if not isinstance(colour, tuple):
+        raise typer.BadParameter(f"--background {background}: a synthetic scene needs a colour (black, white, R,G,B)")
     make_synthetic_scene(name, out, views=views, width=width, height=height, seed=seed, sfm=sfm,
-                         overwrite=overwrite, progress=typer.echo)
+                         overwrite=overwrite, progress=typer.echo, background=colour)
 
 # --- rasterizer benchmark (splatzoo bench) ----------------------------------------------------------------
 # (bench command goes here)
@@ -137,7 +143,7 @@ def bench_command(
 # --- training and evaluation (train, eval, render, compare) ---------------------------------------------
 # (training commands go here)
 def _scene_options(resolution: Optional[int], max_width: Optional[int], test_every: Optional[int],
-                   white_background: bool) -> dict:
+                   background: Optional[str], white_background: bool = False) -> dict:
     opts = {}
     if resolution is not None:
         opts["resolution"] = resolution
@@ -145,15 +151,22 @@ def _scene_options(resolution: Optional[int], max_width: Optional[int], test_eve
         opts["max_width"] = max_width
     if test_every is not None:
         opts["test_every"] = test_every
-    if white_background:
-        opts["background"] = (1.0, 1.0, 1.0)
+    if white_background and background is not None and background.strip().lower() != "white":
+        raise typer.BadParameter(f"--white-background and --background {background} disagree; pass one")
+    if background is not None or white_background:
+        from .data.background import parse_background
+
+        opts["background"] = parse_background("white" if white_background else background)
     return opts
 
 
 _RESOLUTION = typer.Option(None, "--resolution", "-r", help="downscale images by 1, 2, 4 or 8")
 _MAX_WIDTH = typer.Option(None, "--max-width", help="downscale images to at most this width")
 _TEST_EVERY = typer.Option(None, "--test-every", help="every N-th image (sorted by name) is a test view; 0: none")
-_WHITE = typer.Option(False, "--white-background", help="composite RGBA images over white instead of black")
+_BACKGROUND = typer.Option(None, "--background", help="colour behind the surfels and behind RGBA images: auto (the "
+                           "default: found in the image borders, or black), black, white, R,G,B, or random (a new "
+                           "colour each training step; needs images with alpha)")
+_WHITE = typer.Option(False, "--white-background", hidden=True, help="the same as --background white")
 _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, reference, cpu or cuda")
 
 
@@ -178,6 +191,7 @@ def train_command(
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,
     test_every: Optional[int] = _TEST_EVERY,
+    background: Optional[str] = _BACKGROUND,
     white_background: bool = _WHITE,
     densify: bool = typer.Option(True, "--densify/--no-densify", help="adaptive density control (2DGS schedule)"),
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n",
@@ -219,7 +233,7 @@ def train_command(
         typer.echo(f"live viewer: {watch.viewer.url}")
     try:
         result = _train(ctx, data, model, out, resume, overwrite, given, values,
-                        _scene_options(resolution, max_width, test_every, white_background), watch)
+                        _scene_options(resolution, max_width, test_every, background, white_background), watch)
     except BaseException:
         if watch is not None:
             watch.viewer.stop()
@@ -244,8 +258,9 @@ def _train(ctx, data, model, out, resume, overwrite, given, values, scene_option
         result = train(data, model if "model" in given else None, parse_model_args(options_model, list(ctx.args)),
                        {k: v for k, v in values.items() if k in given}, out, resume=True,
                        scene_options={k: v for k, v in scene_options.items()
-                                      if {"resolution": "resolution", "max_width": "max_width",
-                                          "test_every": "test_every", "background": "white_background"}[k] in given},
+                                      if {"resolution": {"resolution"}, "max_width": {"max_width"},
+                                          "test_every": {"test_every"},
+                                          "background": {"background", "white_background"}}[k] & given},
                        watch=watch)
     else:
         if data is None:
@@ -339,6 +354,7 @@ def compare_command(
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,
     test_every: Optional[int] = _TEST_EVERY,
+    background: Optional[str] = _BACKGROUND,
     white_background: bool = _WHITE,
 ) -> None:
     """Train several models with identical data, initial points and budget; write compare.json, report.md,
@@ -348,7 +364,7 @@ def compare_command(
 
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
             seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite,
-            scene_options=_scene_options(resolution, max_width, test_every, white_background))
+            scene_options=_scene_options(resolution, max_width, test_every, background, white_background))
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")
 
@@ -371,6 +387,7 @@ def sweep_command(
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,
     test_every: Optional[int] = _TEST_EVERY,
+    background: Optional[str] = _BACKGROUND,
     white_background: bool = _WHITE,
 ) -> None:
     """Measure the speed / accuracy trade: train every (n_waves, primitives) pair without densification and write
@@ -382,7 +399,7 @@ def sweep_command(
     options.pop("n_waves", None)
     sweep(data, out, model=model, n_waves=n_waves, num_primitives=num_primitives, iterations=iterations,
           quick=quick, seed=seed, backend=backend, synthetic_scene=scene, model_options=options, overwrite=overwrite,
-          scene_options=_scene_options(resolution, max_width, test_every, white_background))
+          scene_options=_scene_options(resolution, max_width, test_every, background, white_background))
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: sweep.json, report.md, pareto.png")
 

@@ -39,7 +39,7 @@ RUN_FORMAT = 1
 LOCK_NAME = ".splatzoo.lock"
 # everything a run writes; `overwrite` removes exactly these (never a file splatzoo did not write)
 RUN_ENTRIES = ("config.json", "checkpoint.pt", "model.pt", "train_log.jsonl", "metrics.json", "renders", "mesh.ply")
-SCENE_OPTION_DEFAULTS = {"resolution": None, "max_width": None, "test_every": 8, "background": [0.0, 0.0, 0.0]}
+SCENE_OPTION_DEFAULTS = {"resolution": None, "max_width": None, "test_every": 8, "background": "auto"}
 
 
 class RunLockedError(SplatzooError):
@@ -70,6 +70,9 @@ def normalize_scene_options(options: dict | None) -> dict:
         raise SplatzooError(f"unknown scene option(s) {', '.join(sorted(unknown))}; known: "
                             f"{', '.join(SCENE_OPTION_DEFAULTS)}")
     merged = {**SCENE_OPTION_DEFAULTS, **{k: v for k, v in (options or {}).items() if v is not None}}
+    from .data.background import parse_background
+
+    merged["background"] = parse_background(merged["background"])  # "white" and (1, 1, 1) are one setting
     return json.loads(json.dumps(merged, default=list))
 
 
@@ -105,7 +108,8 @@ def make_record(scene, scene_options: dict | None, model: str, model_config, cfg
             "model": model, "model_config": _plain(dataclasses.asdict(model_config)),
             "train": _plain(dataclasses.asdict(cfg)),
             "scene": {"name": scene.name, "train_views": len(scene.train), "test_views": len(scene.test),
-                      "extent": scene.extent, "background": list(scene.background)}}
+                      "extent": scene.extent, "background": list(scene.background),
+                      "background_note": getattr(scene, "background_note", "")}}
 
 
 def _plain(x):
@@ -503,6 +507,8 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
         scene = data if hasattr(data, "train") else load_scene(data, **scene_options)
         if not scene.train:
             raise SplatzooError(f"scene {scene.name!r} has no training views")
+        if getattr(scene, "background_note", ""):
+            print(f"background: {scene.background_note}", file=sys.stderr, flush=True)
         out.clear()
         write_json(out.config_path, make_record(scene, scene_options, model, model_config, cfg))
         state = None
@@ -512,7 +518,7 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
 def _load_options(record: dict) -> dict:
     """The recorded scene options as load_scene arguments."""
     opts = dict(record.get("scene_options", {}))
-    if opts.get("background") is not None:
+    if isinstance(opts.get("background"), list):
         opts["background"] = tuple(opts["background"])
     return {k: v for k, v in opts.items() if v is not None}
 

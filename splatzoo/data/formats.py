@@ -59,22 +59,30 @@ def detect_format(path) -> str:
 
 
 def load_scene(path, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
-               background=(0.0, 0.0, 0.0), masks: bool = False, format: str | None = None) -> Scene:
+               background="auto", masks: bool = False, format: str | None = None) -> Scene:
     """Load a dataset folder in any registered format (COLMAP, Blender/NeRF-synthetic, ...), detected automatically.
 
     resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width.
     test_every: images sorted by name, index % test_every == 0 go to `test` (0: no test split; Blender
-    datasets with transforms_test.json use their own split). background: RGB in [0,1] behind RGBA images.
+    datasets with transforms_test.json use their own split). background: the colour behind the surfels and behind
+    RGBA images: "auto" (found in the images, see data/background.py), "random", "black", "white", "R,G,B" or an RGB
+    tuple in [0,1]; the scene says what it chose in `background_note`.
     masks: expose per-view masks (masks/<name> files, else the image alpha channel).
     format: a registered format name, to skip detection.
     """
+    from .background import choose_background, parse_background
+
     path = Path(path).expanduser()
-    background = tuple(float(c) for c in background)
-    if len(background) != 3 or not all(0.0 <= c <= 1.0 for c in background):
-        raise DataError(f"background must be three numbers in [0,1], got {background}")
+    option = parse_background(background)
     if format is None:
         format = detect_format(path)
     elif not path.is_dir():
         detect_format(path)  # the missing-folder / not-a-folder messages
-    return FORMATS.get(format).load(path, resolution=resolution, max_width=max_width, test_every=test_every,
-                                    background=background, masks=masks)
+    scene = FORMATS.get(format).load(path, resolution=resolution, max_width=max_width, test_every=test_every,
+                                     background=option if isinstance(option, tuple) else (0.0, 0.0, 0.0),
+                                     masks=masks)
+    colour, random, note = choose_background(option, scene.train, scene.colors)
+    for view in scene.views:
+        view.background = colour
+    scene.background, scene.random_background, scene.background_note = colour, random, note
+    return scene

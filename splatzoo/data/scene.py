@@ -248,16 +248,16 @@ class View:
             return torch.from_numpy(px.copy())
         return (self._composite(px) * 255 + 0.5).to(torch.uint8)
 
-    def image_float(self) -> torch.Tensor:
-        """float32 [H,W,3] in [0,1] at camera size; transparent pixels show `background`."""
+    def image_float(self, background=None) -> torch.Tensor:
+        """float32 [H,W,3] in [0,1] at camera size; transparent pixels show `background` (default: the view's)."""
         px = self._premultiplied()
         if px.shape[2] == 3:
             return torch.from_numpy(px.astype(np.float32) / np.float32(255.0))
-        return self._composite(px)
+        return self._composite(px, background)
 
-    def _composite(self, px: np.ndarray) -> torch.Tensor:
+    def _composite(self, px: np.ndarray, background=None) -> torch.Tensor:
         t = torch.from_numpy(px.astype(np.float32) / np.float32(255.0))
-        bg = torch.tensor(self.background, dtype=torch.float32)
+        bg = torch.as_tensor(self.background if background is None else background, dtype=torch.float32)
         return (t[:, :, :3] + (1 - t[:, :, 3:4]) * bg).clamp_(0, 1)
 
     def mask(self) -> torch.Tensor | None:
@@ -291,6 +291,8 @@ class Scene:
     extent: float             # 1.1 x radius of the (train) camera centres around their mean
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mesh_path: Path | None = None
+    random_background: bool = False   # training draws a new background colour per view and step
+    background_note: str = ""         # how the background was chosen (when it was not given)
 
     @property
     def views(self) -> list[View]:

@@ -513,8 +513,10 @@ def _progress_fn(progress) -> Callable[[str], None]:
 
 def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, height: int = 256, seed: int = 0, *,
                          sfm: bool = False, points: int = POINTS, supersample: int = SUPERSAMPLE,
-                         overwrite: bool = False, progress=None) -> Path:
+                         overwrite: bool = False, progress=None, background=(0.0, 0.0, 0.0)) -> Path:
     """Render synthetic scene `name` into the COLMAP dataset folder `out` and return its path.
+
+    background: RGB in [0,1] behind the object (an object photographed on a white sheet: (1, 1, 1)).
 
     sfm=True recovers poses and points with `run_sfm` on the renders instead of writing the true ones (then
     similarity-aligned to the true frame, so mesh.ply stays valid). Nothing appears at `out` until the dataset
@@ -530,7 +532,7 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
         for i, cam in enumerate(cams):
-            rgb, cov = render_view(mesh, cam, supersample, specular=spec.specular)
+            rgb, cov = render_view(mesh, cam, supersample, background=background, specular=spec.specular)
             _write_png(tmp / "images" / cam.name, rgb)
             _write_png(tmp / "masks" / cam.name, cov)
             if (i + 1) % 8 == 0 or i + 1 == len(cams):
@@ -574,7 +576,7 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
             "name": name, "kind": "synthetic", "description": spec.description,
             "generator": "splatzoo.data.synthetic (open3d ray casting, Lambertian, fixed world lights)",
             "views": views, "width": width, "height": height, "seed": seed, "supersample": supersample,
-            "background": [0.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0], "target": list(spec.target),
+            "background": [float(c) for c in background], "up": [0.0, 0.0, 1.0], "target": list(spec.target),
             "fov_deg": spec.fov_deg, "mesh": "mesh.ply", "masks": "masks",
             "radius": float(np.linalg.norm(centers - centers.mean(0), axis=1).max()),
             "parts": [{"name": p.name, "texture": p.texture_name, "vertices": len(p.vertices),

@@ -137,6 +137,8 @@ class Trainer:
             self.iteration, self.train_seconds = int(state["iteration"]), float(state["train_seconds"])
             self.view_order = [int(i) for i in state["view_order"]]
         self.background = torch.tensor(scene.background, dtype=torch.float32, device=device)
+        self.random_background = bool(getattr(scene, "random_background", False))
+        self.view_index = {id(v): i for i, v in enumerate(scene.train)}
         self.densify_on = cfg.densify and hasattr(self.net, "logit_opacity")
         self.d_from, self.d_until = cfg.at(cfg.densify_from), cfg.at(cfg.densify_until)
         self.d_every = max(cfg.at(cfg.densify_interval), 10)
@@ -167,8 +169,16 @@ class Trainer:
     def _loss(self, view, step: int):
         cfg = self.cfg
         cam = view.camera.to(self.device, torch.float32)
-        target = view.image_float().to(self.device)
-        render = rasterize(self.net.surfels(cam), cam, backend=self.backend, background=self.background)
+        if self.random_background:
+            # a colour of its own for each (step, view): the same on every rank and after a resume, and drawn
+            # without touching the generator that orders the views
+            seed = (self.cfg.seed * 1_000_003 + step) * 65_537 + self.view_index.get(id(view), 0)
+            bg = torch.rand(3, generator=torch.Generator().manual_seed(seed))
+            target = view.image_float(background=bg).to(self.device)
+            bg = bg.to(self.device)
+        else:
+            target, bg = view.image_float().to(self.device), self.background
+        render = rasterize(self.net.surfels(cam), cam, backend=self.backend, background=bg)
         l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
         loss = l_photo
         if cfg.lambda_normal > 0 and step > cfg.at(cfg.normal_from):
