@@ -184,7 +184,8 @@ def train_command(
     ctx: typer.Context,
     data: Optional[Path] = typer.Argument(None, metavar="DATA", help="COLMAP folder (images/ + sparse/0/) or Blender "
                                           "folder (transforms_*.json); with --resume, the run's own dataset by default"),
-    model: str = typer.Option("gabor", "--model", "-m", help="model name (see `splatzoo models -v` for options)"),
+    model: str = typer.Option("gabor", "--model", "-m", help="model name, with options either following it "
+                              "(--n-waves 8) or inline as in compare (gabor:n_waves=8); see `splatzoo models -v`"),
     iterations: int = typer.Option(30000, "--iterations", "-i", help="training iterations; the schedule scales with it"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="run directory (default runs/<model>)"),
     backend: str = _BACKEND,
@@ -219,7 +220,10 @@ def train_command(
     The fixed-count comparison of the paper: `--no-densify --num-primitives N`. Ctrl-C (or SIGTERM) stops after
     the current iteration with a checkpoint; `--resume` continues from it.
     """
+    from .options import model_spec
+
     given = _given(ctx)
+    model, inline_options = model_spec(model)
     out = out or Path("runs") / model
     values = {k: v for k, v in ctx.params.items() if k in _TRAIN_FIELDS}
     watch = None
@@ -232,7 +236,7 @@ def train_command(
                               snapshot_dir=Path(out) / "renders")
         typer.echo(f"live viewer: {watch.viewer.url}")
     try:
-        result = _train(ctx, data, model, out, resume, overwrite, given, values,
+        result = _train(ctx, data, model, inline_options, out, resume, overwrite, given, values,
                         _scene_options(resolution, max_width, test_every, background, white_background), watch)
     except BaseException:
         if watch is not None:
@@ -247,7 +251,7 @@ def train_command(
             typer.echo("viewer stopped")
 
 
-def _train(ctx, data, model, out, resume, overwrite, given, values, scene_options, watch):
+def _train(ctx, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch):
     from .options import parse_model_args
     from .runs import Run, train
     from .training import TrainConfig
@@ -255,7 +259,8 @@ def _train(ctx, data, model, out, resume, overwrite, given, values, scene_option
     if resume:  # only what was typed is checked against the run; the rest comes from its record
         run = Run(out)
         options_model = model if "model" in given or run.status in ("new", "foreign") else run.record()["model"]
-        result = train(data, model if "model" in given else None, parse_model_args(options_model, list(ctx.args)),
+        result = train(data, model if "model" in given else None,
+                       {**inline_options, **parse_model_args(options_model, list(ctx.args))},
                        {k: v for k, v in values.items() if k in given}, out, resume=True,
                        scene_options={k: v for k, v in scene_options.items()
                                       if {"resolution": {"resolution"}, "max_width": {"max_width"},
@@ -265,7 +270,8 @@ def _train(ctx, data, model, out, resume, overwrite, given, values, scene_option
     else:
         if data is None:
             raise typer.BadParameter("give the dataset folder DATA (only --resume can take it from the run)")
-        result = train(data, model, parse_model_args(model, list(ctx.args)), TrainConfig(**values), out,
+        result = train(data, model, {**inline_options, **parse_model_args(model, list(ctx.args))},
+                       TrainConfig(**values), out,
                        overwrite=overwrite, scene_options=scene_options, watch=watch)
     return result
 
@@ -373,7 +379,8 @@ def compare_command(
 def sweep_command(
     ctx: typer.Context,
     data: Optional[Path] = typer.Argument(None, metavar="DATA", help="dataset (default: a built-in synthetic scene, see --scene)"),
-    model: str = typer.Option("gabor", "--model", "-m", help="wave model swept over --n-waves (0 = the 2dgs model)"),
+    model: str = typer.Option("gabor", "--model", "-m", help="wave model swept over --n-waves (0 = the 2dgs model); "
+                              "options follow it (--prune-waves 0.01) or inline (gabor:prune_waves=0.01)"),
     n_waves: str = typer.Option("0,1,2,4,8", "--n-waves", help="comma-separated wave counts"),
     num_primitives: str = typer.Option("1000,2000,4000", "--num-primitives", "-n",
                                        help="comma-separated fixed primitive counts"),
@@ -392,10 +399,11 @@ def sweep_command(
 ) -> None:
     """Measure the speed / accuracy trade: train every (n_waves, primitives) pair without densification and write
     sweep.json, pareto.png and report.md. Other model options follow, e.g. `--prune-waves 0.01`."""
-    from .options import parse_model_args
+    from .options import model_spec, parse_model_args
     from .sweep import sweep
 
-    options = parse_model_args(model, list(ctx.args))
+    model, inline_options = model_spec(model)
+    options = {**inline_options, **parse_model_args(model, list(ctx.args))}
     options.pop("n_waves", None)
     sweep(data, out, model=model, n_waves=n_waves, num_primitives=num_primitives, iterations=iterations,
           quick=quick, seed=seed, backend=backend, synthetic_scene=scene, model_options=options, overwrite=overwrite,

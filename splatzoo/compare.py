@@ -55,14 +55,10 @@ class ModelChoice:
 
 def parse_model_arg(arg: str) -> ModelChoice:
     """'gabor' or 'gabor:n_waves=8,prune_waves=0.01' (or n-waves=8) -> ModelChoice(label=arg, ...)."""
-    name, _, rest = arg.partition(":")
-    options = {}
-    for item in filter(None, rest.split(",")):
-        key, eq, value = item.partition("=")
-        if not eq:
-            raise SplatzooError(f"model option {item!r} in {arg!r} must look like key=value")
-        options[key.strip().lstrip("-").replace("-", "_")] = value.strip()
-    return ModelChoice(arg, name.strip(), options)
+    from .options import model_spec
+
+    name, options = model_spec(arg)
+    return ModelChoice(arg, name, options)
 
 
 def compare(models: list[str], data=None, out="runs/compare", *, iterations: int | None = None,

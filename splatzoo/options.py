@@ -17,6 +17,22 @@ def option_fields(config_cls) -> list[tuple[str, type, object, str]]:
     return out
 
 
+def model_spec(text: str) -> tuple[str, dict]:
+    """A model with its options in one word, the syntax every command accepts:
+    'gabor' or 'gabor:n_waves=8,prune_waves=0.01' (or n-waves=8) -> ('gabor', {'n_waves': '8', ...}).
+    Values stay strings: make_config converts and checks them."""
+    from .errors import SplatzooError
+
+    name, _, rest = text.partition(":")
+    options = {}
+    for item in filter(None, rest.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise SplatzooError(f"model option {item!r} in {text!r} must look like key=value")
+        options[key.strip().lstrip("-").replace("-", "_")] = value.strip()
+    return name.strip(), options
+
+
 def parse_model_args(model: str, args: list[str]) -> dict:
     """['--n-waves', '8', '--flag', '--no-other'] -> {'n_waves': '8', 'flag': True, 'other': False}.
     Values stay strings: make_config converts and checks them. Unset options are absent (keep defaults)."""

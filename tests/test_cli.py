@@ -92,3 +92,22 @@ def test_sfm_options_reach_the_mapper(tmp_path):
     result = runner.invoke(app, ["sfm", str(images), "--out", str(tmp_path / "out"), "--focal", "-5", "--no-retry"])
     assert result.exit_code != 0 and "focal" in str(result.exception or result.output)
     assert not (tmp_path / "out").exists()
+
+
+def test_one_model_syntax_for_every_command(tmp_path):
+    """`--model gabor:n_waves=2` (compare's syntax) and `--model gabor --n-waves 2` make the same run."""
+    import json
+
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    data = make_synthetic_scene("plain", tmp_path / "data", views=4, width=24, height=24)
+    common = [str(data), "--iterations", "2", "--num-primitives", "50", "--no-densify", "--backend", "cpu"]
+    for name, model in (("inline", ["--model", "gabor:n_waves=2,prune-waves=0.01"]),
+                        ("flags", ["--model", "gabor", "--n-waves", "2", "--prune-waves", "0.01"])):
+        result = runner.invoke(app, ["train", *common, "--out", str(tmp_path / name), *model])
+        assert result.exit_code == 0, result.output
+    inline, flags = (json.loads((tmp_path / n / "config.json").read_text()) for n in ("inline", "flags"))
+    assert inline["model"] == flags["model"] == "gabor"
+    assert inline["model_config"] == flags["model_config"] and inline["model_config"]["n_waves"] == 2
+    result = runner.invoke(app, ["train", *common, "--out", str(tmp_path / "bad"), "--model", "gabor:n_waves"])
+    assert result.exit_code != 0 and "key=value" in str(result.exception or result.output)
