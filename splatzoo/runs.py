@@ -507,8 +507,8 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
         scene = data if hasattr(data, "train") else load_scene(data, **scene_options)
         if not scene.train:
             raise SplatzooError(f"scene {scene.name!r} has no training views")
-        if getattr(scene, "background_note", ""):
-            print(f"background: {scene.background_note}", file=sys.stderr, flush=True)
+        for note in getattr(scene, "notes", ()):
+            print(note, file=sys.stderr, flush=True)
         out.clear()
         write_json(out.config_path, make_record(scene, scene_options, model, model_config, cfg))
         state = None

@@ -113,3 +113,23 @@ def test_cli_names_a_bad_background(white_scene, tmp_path):
                                       "pink", "--iterations", "2"])
     assert result.exit_code != 0 and "auto, black, white" in str(result.exception or result.output)
     assert not (tmp_path / "r").exists()
+
+
+def test_large_photos_are_downscaled_unless_asked(tmp_path):
+    """Photos wider than 1600 px train at 1600 px by default (and say so); --resolution 1 keeps full size."""
+    import cv2
+
+    from splatzoo.data.colmap import write_model
+
+    cams = [Camera.look_at([np.sin(a) * 3, 0.3, -np.cos(a) * 3], [0, 0, 0], width=2000, height=1000,
+                           name=f"v{i}.png", dtype=torch.float64) for i, a in enumerate(np.linspace(0, 1, 3))]
+    (tmp_path / "images").mkdir()
+    for c in cams:
+        cv2.imwrite(str(tmp_path / "images" / c.name), np.full((1000, 2000, 3), 90, np.uint8))
+    write_model(tmp_path / "sparse" / "0", cams, [c.name for c in cams], np.random.default_rng(0).normal(size=(50, 3)))
+    scene = load_scene(tmp_path, test_every=0)
+    assert (scene.train[0].camera.width, scene.train[0].camera.height) == (1600, 800)
+    assert any("2000 px wide" in n and "--resolution 1" in n for n in scene.notes)
+    full = load_scene(tmp_path, test_every=0, resolution=1)
+    assert full.train[0].camera.width == 2000 and not any("px wide" in n for n in full.notes)
+    assert load_scene(tmp_path, test_every=0, max_width=500).train[0].camera.width == 500

@@ -13,7 +13,7 @@ from pathlib import Path
 from ..errors import DataError
 from ..registry import Registry
 from . import blender, colmap
-from .scene import DatasetFormat, Scene
+from .scene import DatasetFormat, Scene, image_size
 
 FORMATS: Registry[DatasetFormat] = Registry("dataset format")
 
@@ -58,11 +58,15 @@ def detect_format(path) -> str:
                     f"For a folder of photos run `splatzoo sfm {path} --out DATA` first")
 
 
+DEFAULT_MAX_WIDTH = 1600  # pixels; wider photos are downscaled unless --resolution or --max-width is given
+
+
 def load_scene(path, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
                background="auto", masks: bool = False, format: str | None = None) -> Scene:
     """Load a dataset folder in any registered format (COLMAP, Blender/NeRF-synthetic, ...), detected automatically.
 
-    resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width.
+    resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width. With
+    neither, images wider than DEFAULT_MAX_WIDTH are downscaled to it (scene.notes says so); resolution=1 keeps them.
     test_every: images sorted by name, index % test_every == 0 go to `test` (0: no test split; Blender
     datasets with transforms_test.json use their own split). background: the colour behind the surfels and behind
     RGBA images: "auto" (found in the images, see data/background.py), "random", "black", "white", "R,G,B" or an RGB
@@ -78,11 +82,23 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
         format = detect_format(path)
     elif not path.is_dir():
         detect_format(path)  # the missing-folder / not-a-folder messages
-    scene = FORMATS.get(format).load(path, resolution=resolution, max_width=max_width, test_every=test_every,
+    capped = resolution is None and max_width is None  # large photos are downscaled unless asked otherwise
+    scene = FORMATS.get(format).load(path, resolution=resolution, max_width=DEFAULT_MAX_WIDTH if capped else max_width,
+                                     test_every=test_every,
                                      background=option if isinstance(option, tuple) else (0.0, 0.0, 0.0),
                                      masks=masks)
+    if capped and scene.views:
+        view = scene.views[0]
+        source_width = (view.pixels.shape[1] if view.pixels is not None else
+                        image_size(view.path)[0] if view.path is not None else view.camera.width)
+        if source_width > view.camera.width:
+            scene.notes.append(f"the images are {source_width} px wide: training at {view.camera.width} px (about "
+                               f"{DEFAULT_MAX_WIDTH} px, as 3DGS tools do; memory and time grow with the pixels). "
+                               "Pass --resolution 1 for full size or --max-width N")
     colour, random, note = choose_background(option, scene.train, scene.colors)
     for view in scene.views:
         view.background = colour
     scene.background, scene.random_background, scene.background_note = colour, random, note
+    if note:
+        scene.notes.append(f"background: {note}")
     return scene

@@ -293,6 +293,7 @@ class Scene:
     mesh_path: Path | None = None
     random_background: bool = False   # training draws a new background colour per view and step
     background_note: str = ""         # how the background was chosen (when it was not given)
+    notes: list[str] = field(default_factory=list)  # what loading decided for the user (shown when training starts)
 
     @property
     def views(self) -> list[View]:
