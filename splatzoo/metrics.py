@@ -297,17 +297,41 @@ class _LPIPSNet(torch.nn.Module):
                 taps.append(x)
         return taps
 
-    def forward(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
-        """x0, x1: [B,3,H,W] already in the network's input range. Returns [B]."""
+    def distance_maps(self, x0: torch.Tensor, x1: torch.Tensor) -> list[torch.Tensor]:
+        """Per layer, the weighted feature distance at each of its positions: [B,1,h,w] (LPIPS is their means' sum)."""
         n = x0.shape[0]
-        taps = self.features(torch.cat([x0, x1]))  # one pass for both images
-        total = x0.new_zeros(n)
-        for f, head in zip(taps, self.heads):
+        maps = []
+        for f, head in zip(self.features(torch.cat([x0, x1])), self.heads):  # one pass for both images
             # unit-normalise each pixel's channel vector; eps as in LPIPS v0.1
             f = f / (torch.sqrt(torch.sum(f * f, dim=1, keepdim=True)) + 1e-10)
-            d = (f[:n] - f[n:]) ** 2
-            total = total + head(d).mean(dim=(1, 2, 3))
-        return total
+            maps.append(head((f[:n] - f[n:]) ** 2))
+        return maps
+
+    def forward(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+        """x0, x1: [B,3,H,W] already in the network's input range. Returns [B]."""
+        return sum(m.mean(dim=(1, 2, 3)) for m in self.distance_maps(x0, x1))
+
+    def tiled(self, x0: torch.Tensor, x1: torch.Tensor, tile: int, halo: int) -> torch.Tensor:
+        """forward() of one large pair [1,3,H,W] within a memory budget: tiles of `tile` px, each seen with `halo`
+        px of context around it, each layer's map averaged over the tiles' interiors. It equals forward() up to
+        the context the halo cuts off (VGG's deepest layer sees about 200 px)."""
+        H, W = x0.shape[-2:]
+        sums, counts = None, None
+        for y in range(0, H, tile):
+            for x in range(0, W, tile):
+                ya, xa = max(0, y - halo), max(0, x - halo)
+                yb, xb = min(H, y + tile + halo), min(W, x + tile + halo)
+                maps = self.distance_maps(x0[..., ya:yb, xa:xb], x1[..., ya:yb, xa:xb])
+                if sums is None:
+                    sums, counts = [x0.new_zeros(()) for _ in maps], [0] * len(maps)
+                for i, m in enumerate(maps):
+                    sy, sx = (yb - ya) / m.shape[-2], (xb - xa) / m.shape[-1]  # this layer's stride
+                    r0, r1 = round((y - ya) / sy), round((min(H, y + tile) - ya) / sy)
+                    c0, c1 = round((x - xa) / sx), round((min(W, x + tile) - xa) / sx)
+                    inner = m[..., r0:max(r1, r0 + 1), c0:max(c1, c0 + 1)]
+                    sums[i] = sums[i] + inner.sum()
+                    counts[i] += inner.numel()
+        return sum(s / c for s, c in zip(sums, counts)).reshape(1)
 
 
 _NETS: dict[tuple[str, str], _LPIPSNet] = {}
@@ -341,6 +365,10 @@ def _check_lpips_args(net: str, convention: str) -> None:
                                f"{', '.join(LPIPS_CONVENTIONS)} ('3dgs' feeds [0,1], 'standard' maps to [-1,1])")
 
 
+LPIPS_TILE = 1024  # larger images are measured in tiles of this size (memory)
+LPIPS_HALO = 128   # context around each tile, a multiple of the deepest stride (16)
+
+
 def lpips_torch(a, b, net: str = "vgg", convention: str = "3dgs") -> torch.Tensor:
     """LPIPS v0.1 of one pair [H,W,3] in [0,1] as a 0-d float32 tensor; differentiable in a and b."""
     _check_lpips_args(net, convention)
@@ -362,4 +390,11 @@ def lpips(a, b, net: str = "vgg", convention: str = "3dgs") -> float:
     """
     with torch.no_grad():
         a, b = _as_pair(a, b)
-        return lpips_torch(a.detach(), b.detach(), net=net, convention=convention).item()
+        if a.shape[0] * a.shape[1] <= LPIPS_TILE ** 2:
+            return lpips_torch(a.detach(), b.detach(), net=net, convention=convention).item()
+        # a large image: VGG's full-resolution activations of a 12 MP pair pass 10 GB; tiles keep them small
+        _check_lpips_args(net, convention)
+        x0, x1 = _hwc_to_batch(a.float()), _hwc_to_batch(b.float())
+        if convention == "standard":
+            x0, x1 = 2 * x0 - 1, 2 * x1 - 1
+        return _get_net(net, a.device).tiled(x0, x1, LPIPS_TILE, LPIPS_HALO).item()

@@ -227,3 +227,19 @@ def test_bad_inputs_raise_shape_error(fn, case):
     if case != "mismatched":
         with pytest.raises(ShapeError):
             fn(torch.as_tensor(bad) if isinstance(bad, np.ndarray) else bad, torch.from_numpy(GOOD))
+
+
+def test_lpips_of_a_large_image_in_tiles(monkeypatch):
+    """Large images are measured in tiles (memory): with enough context around each tile the value is the same."""
+    import splatzoo.metrics as M
+
+    torch.manual_seed(0)
+    a = torch.rand(200, 260, 3)
+    b = (a + 0.1 * torch.randn_like(a)).clamp(0, 1)
+    full = M.lpips(a, b)
+    monkeypatch.setattr(M, "LPIPS_TILE", 96)
+    monkeypatch.setattr(M, "LPIPS_HALO", 112)
+    tiled = M.lpips(a, b)
+    assert abs(tiled - full) < 1e-4 * full, (tiled, full)
+    monkeypatch.setattr(M, "LPIPS_HALO", 16)  # too little context: measurably different (so tiling did happen)
+    assert abs(M.lpips(a, b) - full) > 1e-3 * full
