@@ -276,8 +276,8 @@ def _is_run_folder(path: Path) -> bool:
 
 
 def expand_runs(paths) -> list[Path]:
-    """Run folders named on the command line; a folder that holds run folders (`splatzoo compare`'s output) stands
-    for all of them, in name order."""
+    """Run folders named on the command line; a folder that holds run folders (`splatzoo compare`'s output, whose
+    runs are in its runs/ folder) stands for all of them, in name order."""
     runs = []
     for p in map(Path, paths):
         if not p.exists():
@@ -289,6 +289,8 @@ def expand_runs(paths) -> list[Path]:
             runs.append(p)
             continue
         inner = sorted(q for q in p.iterdir() if q.is_dir() and _is_run_folder(q))
+        if not inner and (p / "runs").is_dir():  # `splatzoo compare` and `sweep` keep their runs in OUT/runs/
+            inner = sorted(q for q in (p / "runs").iterdir() if q.is_dir() and _is_run_folder(q))
         if not inner:
             raise SplatzooError(f"{p} is neither a run folder (config.json, model.pt) nor a folder of runs")
         runs.extend(inner)
@@ -517,6 +519,8 @@ class _Session:
             what = f"{model.num_primitives:,} surfels" if model is not None else "waiting for the first parameters"
             live = f", training: iteration {s.live.iteration}" if s.live is not None else ""
             lines.append(f"**{s.label}**: {what}{live}" + (f" ({s.note})" if s.note else ""))
+        if getattr(self, "layout", None) is not None and self.layout.value == "side by side":
+            lines.append("side by side, left to right: " + " | ".join(s.label for s in self.viewer.sources))
         if getattr(self, "mode", None) is not None and self.mode.value == "frequency":
             lines.append("frequency: blue low, green at the pixel Nyquist limit (0.5 cycles/px), red above")
         if seconds is not None:

@@ -109,6 +109,9 @@ def test_side_by_side_shares_the_camera(compare_dir):
 
 def test_runs_are_checked_before_a_server_starts(compare_dir, tmp_path):
     assert [p.name for p in expand_runs([compare_dir])] == ["2dgs", "gabor"]
+    nested = tmp_path / "report"  # the layout `splatzoo compare` writes: OUT/runs/<label>
+    shutil.copytree(compare_dir, nested / "runs")
+    assert [p.name for p in expand_runs([nested])] == ["2dgs", "gabor"]
     with pytest.raises(SplatzooError, match="does not exist"):
         expand_runs([tmp_path / "missing"])
     (tmp_path / "empty").mkdir()
