@@ -112,3 +112,19 @@ def test_import_is_light():
             "'kornia', 'skimage') if m in sys.modules]; print(heavy)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_gabor_surfel_init_starts_as_the_2dgs_surfel():
+    """init=surfel: the base colour is the point colour (as 2DGS starts) and every wave starts small."""
+    import splatzoo
+    from splatzoo.models.gabor import INIT_OFFSET
+
+    torch.manual_seed(0)
+    pts, cols = torch.randn(300, 3), torch.rand(300, 3)
+    cam = splatzoo.Camera.look_at([0, 0, -4], [0, 0, 0], width=32, height=32)
+    gabor = splatzoo.create_model("gabor", pts, cols, n_waves=4, init="surfel")
+    s = gabor.surfels(cam)
+    assert torch.allclose(s.base_color, cols, atol=1e-6)
+    assert s.wave_amplitudes.abs().max() <= INIT_OFFSET / 4 + 1e-7 and s.wave_amplitudes.abs().max() > 0
+    paper = splatzoo.create_model("gabor", pts, cols, n_waves=4).surfels(cam)
+    assert paper.base_color.max() < 0.25  # the release's dark start: (sum w)(cA + cB)/2 with sum w ~ 0.2

@@ -32,6 +32,7 @@ from ..geometry import eval_sh, num_sh_bases
 from ..types import Camera, Surfels
 from .base import SurfelModel, view_directions
 
+INIT_OFFSET = 0.05  # init="surfel": half the colour difference cA - cB, per channel, at most
 PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
 
 
@@ -43,6 +44,10 @@ class GaborConfig:
     prune_waves: float = field(default=0.0, metadata={
         "help": "adaptive waves: during training remove waves whose visible contribution (opacity x RMS of the "
                 "wave over its surfel, colour units for images in [0,1]) is below this, e.g. 0.01; 0 keeps every wave"})
+    init: str = field(default="paper", metadata={
+        "help": "paper: the public release's start (cA = point colour, cB = 0, weights 0.1 U(0,1): a dark start); "
+                "surfel: each surfel starts as the 2DGS surfel it would be (base colour = the point colour, weights "
+                "1/N, cA and cB the point colour +- a small offset, so waves start near zero); see BENCHMARKS.md"})
     prune_from: float = field(default=0.5, metadata={
         "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow; "
                 "with densification on, pruning also waits until the last opacity reset has recovered)"})
@@ -56,6 +61,8 @@ class GaborConfig:
             raise ShapeError(f"sh_degree must be 0, 1, 2 or 3, got {self.sh_degree}")
         if not float(self.prune_waves) >= 0:
             raise ShapeError(f"prune_waves must be >= 0 (0: off), got {self.prune_waves}")
+        if self.init not in ("surfel", "paper"):
+            raise ShapeError(f"init must be surfel or paper, got {self.init!r}")
         if not 0 <= float(self.prune_from) <= 1:
             raise ShapeError(f"prune_from is a fraction of the run in [0, 1], got {self.prune_from}")
 
@@ -106,12 +113,21 @@ class GaborModel(SurfelModel):
         return ["wave_weights", "wave_freqs"] + (["wave_phases"] if self.learn_phase else [])
 
     def init_from_points(self, points, colors, generator):
-        """As the public release: cA = point colour, cB = black, w = 0.1 U(0,1), f = U(0,1), phi = U(0,1)."""
+        """init="paper" (default), as the public release: cA = point colour, cB = black, w = 0.1 U(0,1).
+        init="surfel": the 2DGS surfel of the point, waves as a small residual: w = 1/N (so the base colour
+        (sum w)(cA + cB)/2 is the point colour) and cA, cB = colour +- d with d ~ INIT_OFFSET U(-1,1) per channel
+        (each wave's amplitude w (cA - cB)/2 = d/N). Both: f = U(0,1) cycles per sigma, phi = U(0,1)."""
         self.init_geometry(points, generator)
         n, k = self.wave_weights.shape
-        self.color_a.copy_(colors)
-        self.color_b.zero_()
-        self.wave_weights.copy_(0.1 * torch.rand(n, k, generator=generator))
+        if self.config.init == "paper":
+            self.color_a.copy_(colors)
+            self.color_b.zero_()
+            self.wave_weights.copy_(0.1 * torch.rand(n, k, generator=generator))
+        else:
+            offset = INIT_OFFSET * (2 * torch.rand(n, 3, generator=generator) - 1)
+            self.color_a.copy_(colors + offset)
+            self.color_b.copy_(colors - offset)
+            self.wave_weights.fill_(1.0 / k)
         self.wave_freqs.copy_(torch.rand(n, k, generator=generator))
         if self.learn_phase:
             self.wave_phases.copy_(torch.rand(n, k, generator=generator))
