@@ -104,3 +104,67 @@ def test_a_refused_launch_ends_every_rank(tmp_path):
         assert proc.returncode == 2, output
         assert f"error (rank {rank}): cannot resume" in output and "Traceback" not in output, output
     assert not (tmp_path / "none" / "config.json").exists()
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d.name))
+    return out
+
+
+def _start(data, out):
+    args = [sys.executable, "-m", "splatzoo.cli", "train", str(data), "--model", "gabor", "--out", str(out),
+            "--nproc", "2", "--iterations", "150", "--num-primitives", "150", "--backend", "cpu",
+            "--checkpoint-every", "10"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    deadline = time.monotonic() + 180
+    while not (out / "checkpoint.pt").exists():
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[0]
+        time.sleep(0.05)
+    return proc
+
+
+def test_sigterm_checkpoints_and_resume_matches(tiny_data, tmp_path):
+    reference = train(tiny_data, "gabor", {}, TrainConfig(iterations=150, num_primitives=150, backend="cpu",
+                                                          nproc=2, checkpoint_every=10),
+                      tmp_path / "reference", progress=False, evaluate_at_end=False).model
+    run = tmp_path / "run"
+    proc = _start(tiny_data, run)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    output, _ = proc.communicate(timeout=180)
+    assert proc.returncode == 143, output
+    assert "--resume" in output and "Traceback" not in output, output
+    assert not (run / "model.pt").exists()
+    r = subprocess.run([sys.executable, "-m", "splatzoo.cli", "train", "--resume", "--out", str(run)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert_close(reference, load_model(run / "model.pt"), rtol=0, atol=0)
+    r = subprocess.run([sys.executable, "-m", "splatzoo.cli", "train", "--resume", "--out", str(run), "--nproc", "1"],
+                       capture_output=True, text=True)
+    assert r.returncode != 0
+
+
+def test_a_dying_rank_ends_the_run_clearly(tiny_data, tmp_path):
+    run = tmp_path / "run"
+    proc = _start(tiny_data, run)
+    ranks = []
+    deadline = time.monotonic() + 60
+    while len(ranks) < 2 and time.monotonic() < deadline:  # the spawn start method adds a resource tracker
+        ranks = [p for p in _children(proc.pid) if "spawn_main" in Path(f"/proc/{p}/cmdline").read_text()]
+        time.sleep(0.05)
+    os.kill(max(ranks), signal.SIGKILL)
+    output, _ = proc.communicate(timeout=180)
+    assert proc.returncode == 2, output
+    assert "rank" in output and "SIGKILL" in output and "--resume" in output, output
+    assert (run / "checkpoint.pt").exists()
+    with pytest.raises(SplatzooError, match="nproc"):
+        train(tiny_data, "gabor", {}, {"nproc": 3}, run, resume=True, progress=False)
