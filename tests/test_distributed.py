@@ -19,6 +19,7 @@ from splatzoo.training import TrainConfig
 
 # densification inside the run (steps 10 and 20), so that "the same decisions on every rank" is tested
 RUN = dict(iterations=24, backend="cpu", num_primitives=150, densify=True, densify_from=0, densify_until=30000,
+           densify_interval=10,
            opacity_reset_interval=10 ** 6, log_every=4, eval_every=12, seed=2, densify_grad_threshold=5e-5)
 
 

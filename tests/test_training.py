@@ -139,3 +139,34 @@ def test_checkpoint_loads_as_a_model_and_outputs_are_readable(tiny_data, tmp_pat
     assert model.name == "gabor" and model.num_primitives == 300
     mode = stat.S_IMODE(os.stat(tmp_path / "r" / "config.json").st_mode)
     assert mode & stat.S_IRGRP and mode & stat.S_IROTH
+
+
+def test_densification_is_sane_at_any_run_length(tiny_data):
+    """A short run keeps the 30k schedule's statistics window and reset spacing; growth is capped per step and in
+    all (one surfel per 128 training pixels by default)."""
+    from splatzoo.training.densify import DensifyStats, densify_and_prune
+    from splatzoo.training.trainer import Trainer, densify_budget
+    from splatzoo.zoo import make_config
+
+    scene = load_scene(tiny_data)
+    short = Trainer.start(scene, "2dgs", make_config("2dgs"), small_config(iterations=3000, densify=True), "cpu",
+                          torch.device("cpu"))
+    assert short.d_every == 100 and short.reset_every == 1000
+    pixels = sum(v.camera.width * v.camera.height for v in scene.train)
+    assert short.budget == densify_budget(scene, 300) == max(pixels // 128, 600)
+    long = Trainer.start(scene, "2dgs", make_config("2dgs"), small_config(iterations=60000, densify=True), "cpu",
+                         torch.device("cpu"))
+    assert long.d_every == 200 and long.reset_every == 6000  # longer runs stretch the schedule as before
+    net, opt = short.net, short.optimizer
+    stats = DensifyStats(net.num_primitives)
+    stats.grad_sum += 1.0
+    stats.count += 1.0  # every surfel is a candidate
+    densify_and_prune(net, opt, stats, grad_threshold=1e-9, scene_extent=scene.extent, min_opacity=0.0,
+                      generator=torch.Generator().manual_seed(0), max_growth=0.5)
+    assert net.num_primitives == 450  # 300 + at most half of it
+    stats = DensifyStats(net.num_primitives)
+    stats.grad_sum += 1.0
+    stats.count += 1.0
+    densify_and_prune(net, opt, stats, grad_threshold=1e-9, scene_extent=scene.extent, min_opacity=0.0,
+                      generator=torch.Generator().manual_seed(0), max_primitives=500, max_growth=0.5)
+    assert net.num_primitives == 500

@@ -81,15 +81,18 @@ def _edit_primitives(model: SurfelModel, optimizer: torch.optim.Optimizer, keep:
 def densify_and_prune(model: SurfelModel, optimizer, stats: DensifyStats, *, grad_threshold: float,
                       scene_extent: float, min_opacity: float, generator: torch.Generator,
                       percent_dense: float = 0.01, max_world_scale: float | None = None,
-                      max_primitives: int | None = None) -> dict:
-    """One densification step; returns counts of cloned, split and pruned primitives."""
+                      max_primitives: int | None = None, max_growth: float | None = None) -> dict:
+    """One densification step; returns counts of cloned, split and pruned primitives. At most max_primitives in
+    all and max_growth x the current count new ones (each clone or split adds one): the hottest candidates win."""
     params = {k: v.detach() for k, v in model.per_primitive().items()}
     n = model.num_primitives
     grads = stats.mean().to(params["means"].device)
     scales = torch.exp(params["log_scales"]).max(1).values
     hot = grads >= grad_threshold
-    if max_primitives is not None:  # budget: keep only the hottest candidates
-        room = max(0, max_primitives - n)
+    limits = ([max(0, max_primitives - n)] if max_primitives is not None else []) + \
+        ([max(1, int(max_growth * n))] if max_growth is not None else [])
+    room = min(limits) if limits else None
+    if room is not None:  # keep only the hottest candidates
         if int(hot.sum()) > room:
             top = torch.topk(torch.where(hot, grads, torch.zeros_like(grads)), room).indices
             hot = torch.zeros_like(hot)

@@ -19,6 +19,16 @@ from .distributed import Comm
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
 
 REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many iterations and scaled to the run
+PIXELS_PER_SURFEL = 128       # default densification budget: one surfel per this many training pixels
+MAX_GROWTH = 0.5              # one densification step adds at most this fraction of the current count
+
+
+def densify_budget(scene, initial: int) -> int:
+    """The primitive count densification may reach when --max-primitives is not given: one surfel per
+    PIXELS_PER_SURFEL training pixels (3DGS's converged scenes hold about one Gaussian per 100), and at least
+    twice the initial count."""
+    pixels = sum(v.camera.width * v.camera.height for v in scene.train)
+    return max(pixels // PIXELS_PER_SURFEL, 2 * initial)
 
 
 @dataclass
@@ -30,7 +40,9 @@ class TrainConfig:
     seed: int = 0
     densify: bool = True
     num_primitives: int | None = field(default=None, metadata={"help": "start from exactly this many primitives"})
-    max_primitives: int | None = None
+    max_primitives: int | None = field(default=None, metadata={
+        "help": "cap on the count densification reaches (default: one surfel per 128 training pixels, at least "
+                "twice the initial count)"})
     lambda_dssim: float = 0.2
     lambda_normal: float = 0.05
     lambda_dist: float = 0.0
@@ -141,8 +153,12 @@ class Trainer:
         self.view_index = {id(v): i for i, v in enumerate(scene.train)}
         self.densify_on = cfg.densify and hasattr(self.net, "logit_opacity")
         self.d_from, self.d_until = cfg.at(cfg.densify_from), cfg.at(cfg.densify_until)
-        self.d_every = max(cfg.at(cfg.densify_interval), 10)
-        self.reset_every = cfg.at(cfg.opacity_reset_interval)
+        # a short run keeps the 30k schedule's windows: densification decides on at least densify_interval
+        # iterations of gradient statistics, and opacity resets come no closer than opacity_reset_interval / 3
+        self.d_every = max(cfg.at(cfg.densify_interval), cfg.densify_interval)
+        self.reset_every = max(cfg.at(cfg.opacity_reset_interval), cfg.opacity_reset_interval // 3)
+        # from the scene and the config alone, so that a resumed run has the same budget
+        self.budget = cfg.max_primitives or densify_budget(scene, cfg.num_primitives or scene.points.shape[0])
 
     @classmethod
     def start(cls, scene, model: str, model_config, cfg: TrainConfig, backend: str, device,
@@ -242,7 +258,7 @@ class Trainer:
                                   scene_extent=scene.extent, min_opacity=0.0 if recovering else cfg.min_opacity,
                                   generator=self.gen,
                                   max_world_scale=0.1 * scene.extent if step > self.reset_every else None,
-                                  max_primitives=cfg.max_primitives)
+                                  max_primitives=self.budget, max_growth=MAX_GROWTH)
             if step % self.reset_every == 0:
                 reset_opacity(net, optimizer)
         net.on_step(step, cfg, optimizer)  # model-specific edits (e.g. adaptive waves); no-op by default
