@@ -426,7 +426,7 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
         return _train_launched(out, world, data, model, model_options, config, scene_options, resume=resume,
                                overwrite=overwrite, progress=progress, evaluate_at_end=evaluate_at_end,
                                stop_after=stop_after, command=command)
-    with out.lock(command, create=True):
+    with out.lock(command, create=not resume):  # a resume needs the run there; only a new run makes the folder
         scene, model, model_config, cfg, state = _prepare(out, data, model, model_options, config, scene_options,
                                                           resume=resume, overwrite=overwrite)
         if cfg.nproc > 1:
@@ -631,7 +631,7 @@ def _train_launched(out: Run, world: int, data, model, model_options, config, sc
             decided = [None, None]  # [failure message, (scene, model, model_config, cfg, state)]
             if rank == 0:
                 try:
-                    held.enter_context(out.lock(command, create=True))
+                    held.enter_context(out.lock(command, create=not resume))
                     decided[1] = _prepare(out, data, model, model_options, config, scene_options, resume=resume,
                                           overwrite=overwrite, world=world)
                 except Exception as e:
