@@ -418,6 +418,8 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     out = Run(out or Path("runs") / (model or "gabor"))
     from .training.distributed import launched_world
 
+    if resume and not out.path.is_dir():  # before the lock, which would make the folder
+        raise SplatzooError(f"cannot resume: {out.path} holds no run (no checkpoint); start it without --resume")
     world = launched_world()
     if watch is not None and (world or (config.nproc if isinstance(config, TrainConfig) else
                                         (config or {}).get("nproc", 1)) > 1):
@@ -426,7 +428,7 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
         return _train_launched(out, world, data, model, model_options, config, scene_options, resume=resume,
                                overwrite=overwrite, progress=progress, evaluate_at_end=evaluate_at_end,
                                stop_after=stop_after, command=command)
-    with out.lock(command, create=not resume):  # a resume needs the run there; only a new run makes the folder
+    with out.lock(command, create=True):
         scene, model, model_config, cfg, state = _prepare(out, data, model, model_options, config, scene_options,
                                                           resume=resume, overwrite=overwrite)
         if cfg.nproc > 1:
@@ -631,7 +633,7 @@ def _train_launched(out: Run, world: int, data, model, model_options, config, sc
             decided = [None, None]  # [failure message, (scene, model, model_config, cfg, state)]
             if rank == 0:
                 try:
-                    held.enter_context(out.lock(command, create=not resume))
+                    held.enter_context(out.lock(command, create=True))
                     decided[1] = _prepare(out, data, model, model_options, config, scene_options, resume=resume,
                                           overwrite=overwrite, world=world)
                 except Exception as e:
