@@ -606,8 +606,9 @@ class _Session:
             try:
                 started = time.perf_counter()
                 image = self.render(cam)
-                if image is None:
+                if image is None:  # a training that has not published its first parameters yet
                     self.wake.wait(0.2)
+                    self.wake.clear()
                     continue
                 self.client.scene.set_background_image(image, format="jpeg", jpeg_quality=80 if moving else 92)
                 seconds = time.perf_counter() - started
