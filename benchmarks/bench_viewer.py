@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     from splatzoo.data.synthetic import make_synthetic_scene
     from splatzoo.runs import train
     from splatzoo.training import TrainConfig
-    from splatzoo.viewer import browser_camera, render_view, view
+    from splatzoo.viewer import SETTLE_SECONDS, browser_camera, fit_size, render_view, view
 
     with tempfile.TemporaryDirectory() as tmp:
         data = make_synthetic_scene("sweater", Path(tmp) / "data", views=24, width=256, height=256)
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
                 browser.close()
         finally:
             viewer.stop()
-        small = browser_camera(c.wxyz, c.position, c.fov, *_fit(full_cam.width, full_cam.height, 256))
+        small = browser_camera(c.wxyz, c.position, c.fov, *fit_size(full_cam.width, full_cam.height, 256))
         timings = {}
         for name, cam in (("moving", small), ("full", full_cam)):
             render_view(model, cam, "rgb", backend=args.backend)
@@ -92,22 +92,10 @@ def main(argv=None) -> int:
         print(f"| frames per second while orbiting ({small.width}x{small.height}) | {moving_frames / orbit:.1f} |")
         print(f"| camera updates sent per second | {steps / orbit:.1f} |")
         print(f"| time from the camera stopping to the full-size frame ({full_cam.width}x{full_cam.height}) | "
-              f"{to_full:.2f} s (of which {viewer_settle():.2f} s waiting for the camera to settle) |")
+              f"{to_full:.2f} s (of which {SETTLE_SECONDS:.2f} s waiting for the camera to settle) |")
         print(f"| render alone, {small.width}x{small.height} | {1000 * timings['moving']:.0f} ms |")
         print(f"| render alone, {full_cam.width}x{full_cam.height} | {1000 * timings['full']:.0f} ms |")
     return 0
-
-
-def _fit(width: int, height: int, longest: int) -> tuple[int, int]:
-    from splatzoo.viewer import fit_size
-
-    return fit_size(width, height, longest)
-
-
-def viewer_settle() -> float:
-    from splatzoo.viewer import SETTLE_SECONDS
-
-    return SETTLE_SECONDS
 
 
 if __name__ == "__main__":

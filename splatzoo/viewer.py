@@ -118,13 +118,7 @@ def _colormap(values: torch.Tensor, name: str = "turbo") -> torch.Tensor:
 
 def surfel_wave_counts(surfels: Surfels) -> torch.Tensor:
     """[N] waves each surfel uses (adaptive models keep fewer; a wave of zero amplitude counts as none)."""
-    k = surfels.num_waves
-    if k == 0:
-        return torch.zeros(surfels.num, device=surfels.means.device)
-    used = surfels.wave_amplitudes.abs().amax(-1) > 0
-    if surfels.wave_counts is not None:
-        used &= torch.arange(k, device=used.device)[None] < surfels.wave_counts[:, None]
-    return used.sum(1).float()
+    return surfel_wave_mask(surfels).sum(1).float()
 
 
 def surfel_cycles_per_pixel(surfels: Surfels, cam: Camera) -> torch.Tensor:
