@@ -328,10 +328,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         .def_readwrite("alpha_min", &sz::Settings::alpha_min)
         .def_readwrite("t_min", &sz::Settings::t_min)
         .def_readwrite("filter_inv_sq", &sz::Settings::filter_inv_sq)
-        .def_readwrite("parallel_eps", &sz::Settings::parallel_eps);
+        .def_readwrite("parallel_eps", &sz::Settings::parallel_eps)
+        .def_readwrite("pixel_filter", &sz::Settings::pixel_filter);
     // the fields above, so the Python side can check it sets every one
     m.attr("SETTINGS_FIELDS") = py::make_tuple("near", "far", "alpha_max", "alpha_min", "t_min", "filter_inv_sq",
-                                               "parallel_eps");
+                                               "parallel_eps", "pixel_filter");
     m.def("render", &render, "Project, cull, sort, bin and rasterize surfels; returns (outputs, state)",
           py::arg("settings"), py::arg("means"), py::arg("quats"), py::arg("scales"), py::arg("opacities"),
           py::arg("base_color"), py::arg("wave_vectors"), py::arg("wave_phases"), py::arg("wave_amplitudes"),

@@ -27,12 +27,15 @@ struct TileScratch {
     alignas(64) S u[TILE_PIXELS];
     alignas(64) S v[TILE_PIXELS];
     alignas(64) S z[TILE_PIXELS];
+    alignas(64) S blur[3][TILE_PIXELS];  // anti-aliased only: the colour's blur (PairEval::blur)
 };
 
-// Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z per pixel.
-template <class S>
-__attribute__((noinline)) void eval_rows(const Settings& settings, const Geom<S>& g, const S* xs, S y0, int r0, int r1,
-                                         S* alpha, S* us, S* vs, S* zs) {
+// Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z (and, anti-aliased, the blur) per pixel.
+template <bool FILTERED, class S>
+__attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Geom<S>& g, const S* xs, S y0, int r0,
+                                              int r1, TileScratch<S>& sc) {
+    S* alpha = sc.alpha;
+    S *us = sc.u, *vs = sc.v, *zs = sc.z;
     const Geom<S> gl = g;  // local copies let the compiler keep every field in a register
     const Settings st = settings;
     for (int r = r0; r <= r1; ++r) {
@@ -44,13 +47,26 @@ __attribute__((noinline)) void eval_rows(const Settings& settings, const Geom<S>
 #pragma omp simd
         for (int c = 0; c < TILE; ++c) {
             PairEval<S> e;
-            eval_pair(st, gl, xs[c], y, e);
+            if constexpr (FILTERED) {
+                eval_pair_filtered(st, gl, xs[c], y, e);
+                for (int b = 0; b < 3; ++b) sc.blur[b][r * TILE + c] = e.blur[b];
+            } else {
+                eval_pair(st, gl, xs[c], y, e);
+            }
             al[c] = e.alpha;
             ur[c] = e.u;
             vr[c] = e.v;
             zr[c] = e.z;
         }
     }
+}
+
+template <class S>
+void eval_rows(const Settings& st, const Geom<S>& g, const S* xs, S y0, int r0, int r1, TileScratch<S>& sc) {
+    if (st.pixel_filter > 0)
+        eval_rows_impl<true>(st, g, xs, y0, r0, r1, sc);
+    else
+        eval_rows_impl<false>(st, g, xs, y0, r0, r1, sc);
 }
 
 struct TileRect {
@@ -130,6 +146,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
     const int W = s.W, H = s.H;
     const int nt = tiles_x(W) * tiles_y(H);
     const Geom<S>* geom = reinterpret_cast<const Geom<S>*>(f.geom);
+    const bool filtered = s.st.pixel_filter > 0;
 #pragma omp parallel num_threads(threads)
     {
         TileScratch<S> sc;
@@ -150,7 +167,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                 const int i = f.tile_list[pos];
                 int c0, c1, r0, r1;
                 if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
-                eval_rows(s.st, geom[i], sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
+                eval_rows(s.st, geom[i], sc.xs, y0, r0, r1, sc);
                 const SurfelColour<S> sf = surfel_colour(s, i);
                 const int rel = pos - start;
                 for (int r = r0; r <= r1; ++r)
@@ -159,7 +176,9 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                         const S a = sc.alpha[p];
                         if (a == S(0) || px[p].done) continue;
                         S col[3], pre[3];
-                        wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre);
+                        const S blur[3] = {sc.blur[0][p], sc.blur[1][p], sc.blur[2][p]};
+                        wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre,
+                                   filtered ? blur : nullptr);
                         blend_forward(s.st, px[p], a, sc.z[p], col, sf.normal, rel);
                         active -= px[p].done;
                     }
@@ -210,7 +229,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                     continue;
                 }
                 const Geom<S>& gm = geom[i];
-                eval_rows(s.st, gm, sc.xs, y0, r0, r1, sc.alpha, sc.u, sc.v, sc.z);
+                eval_rows(s.st, gm, sc.xs, y0, r0, r1, sc);
                 const SurfelColour<S> sf = surfel_colour(s, i);
                 const int rel = pos - start;
                 auto pixels = [&](RowAcc<S>& acc) {
@@ -220,7 +239,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                             const S a = sc.alpha[p];
                             if (a == S(0) || rel >= px[p].last) continue;
                             PairEval<S> e;
-                            eval_pair(s.st, gm, sc.xs[c], y0 + S(r), e);
+                            eval_pair_any(s.st, gm, sc.xs[c], y0 + S(r), e);
                             // the decision and the values blended come from eval_rows, exactly as in the forward
                             e.alpha = a;
                             e.u = sc.u[p];

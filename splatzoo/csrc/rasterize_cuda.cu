@@ -145,11 +145,11 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
         for (int j = 0; j < n && !p.done; ++j) {
             if (!in_box(sh.b[j], x, y)) continue;
             PairEval<S> e;
-            eval_pair(st, sh.g[j], px, py, e);
+            eval_pair_any(st, sh.g[j], px, py, e);
             if (e.alpha == S(0)) continue;
             const SurfelColour<S> sf = surfel_colour(s, sh.id[j]);
             S col[3], pre[3];
-            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, e.u, e.v, col, pre);
+            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, e.u, e.v, col, pre, st.pixel_filter > 0 ? e.blur : nullptr);
             blend_forward(st, p, e.alpha, e.z, col, sf.normal, base + j - start);
         }
     }
@@ -233,7 +233,7 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
             const bool candidate = rel < p.last && in_box(sh.b[j], x, y);
             if (!__any_sync(FULL_WARP, candidate)) continue;
             PairEval<S> e;
-            eval_pair(st, sh.g[j], px, py, e);  // rounds as in the forward: the same pairs contribute
+            eval_pair_any(st, sh.g[j], px, py, e);  // rounds as in the forward: the same pairs contribute
             const bool valid = candidate && e.alpha != S(0);
             if (!__any_sync(FULL_WARP, valid)) continue;
             const int64_t i = sh.id[j];

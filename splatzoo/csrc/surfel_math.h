@@ -29,6 +29,7 @@ struct Settings {
     double t_min;          // stop before a contribution that would bring transmittance below this
     double filter_inv_sq;  // screen-space low-pass filter: rho2d = filter_inv_sq |pixel - centre|^2
     double parallel_eps;   // a ray with |c_z| <= parallel_eps max(|c_x|, |c_y|) misses the surfel's plane
+    double pixel_filter;   // variance (px^2) of the anti-aliasing pixel footprint; 0: off (the screen filter instead)
 };
 
 // Compile time, not a setting: a CUDA block is one tile. RasterSettings.tile is checked against it.
@@ -56,7 +57,9 @@ enum : int {
     G_O = 15,       // dL/d opacity                        (1)
     G_BASE = 16,    // dL/d base colour                    (3)
     G_NORMAL = 19,  // dL/d surfel normal                  (3)
-    G_WAVES = 22,   // per wave: d k_x, d k_y, d phi, d a (3)
+    G_A = 22,       // dL/dA through the footprint's Jacobian (3; anti-aliased only)
+    G_B = 25,       // dL/dB through the footprint's Jacobian (3; anti-aliased only)
+    G_WAVES = 28,   // per wave: d k_x, d k_y, d phi, d a (3)
 };
 constexpr int G_PER_WAVE = 6;
 SZ_HD constexpr int grad_width(int K) { return G_WAVES + G_PER_WAVE * K; }
@@ -240,11 +243,16 @@ SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S*
     } else {
         b[0] = -big; b[1] = -big; b[2] = big; b[3] = big;
     }
-    const S rf = sqrt(smax(log_o, S(0)) / S(st.filter_inv_sq / 2));
-    b[0] = nan_min(b[0], center[0] - rf);
-    b[1] = nan_min(b[1], center[1] - rf);
-    b[2] = nan_max(b[2], center[0] + rf);
-    b[3] = nan_max(b[3], center[1] + rf);
+    if (st.pixel_filter > 0) {  // the footprint dilates the disc's image (common.footprint_pad)
+        const S pad = S(1.25) * sqrt(r2 * S(st.pixel_filter)) + S(0.5);
+        b[0] -= pad; b[1] -= pad; b[2] += pad; b[3] += pad;
+    } else {
+        const S rf = sqrt(smax(log_o, S(0)) / S(st.filter_inv_sq / 2));
+        b[0] = nan_min(b[0], center[0] - rf);
+        b[1] = nan_min(b[1], center[1] - rf);
+        b[2] = nan_max(b[2], center[0] + rf);
+        b[3] = nan_max(b[3], center[1] + rf);
+    }
     for (int k = 0; k < 4; ++k) {
         S v = b[k] != b[k] ? S(0) : b[k];  // nan_to_num, then clamp to +-big
         v = smin(smax(v, -big), big);
@@ -347,10 +355,15 @@ template <class S>
 struct PairEval {
     S dx, dy;      // pixel centre minus projected centre
     S c0, c1, c2;  // c = h_x x h_y
-    S u, v, z;     // local coordinates used for colour (0 where the filter wins) and hit depth
-    S ex, raw;     // exp(-rho/2) and o * ex before the clamp
+    S u, v, z;     // local coordinates used for colour (0 where the filter wins; the footprint's P x when
+                   // anti-aliased) and the depth there
+    S ex, raw;     // exp(-rho/2) (anti-aliased: det(I + S)^-1/2 exp(-q/2)) and o * ex before the clamp
     S alpha;       // final alpha, 0 where skipped (alpha < alpha_min or z < near)
-    bool use3;     // the ray-splat hit (rho3d) won over the screen filter (rho2d)
+    bool use3;     // the ray-splat hit (rho3d) won over the screen filter (rho2d); always, when anti-aliased
+    // anti-aliased only (see eval_pair_filtered): the hit x, the Jacobian d(u, v)/d(pixel), P = (I + S)^-1 (p01
+    // once), det(I + S), and the colour's blur I - P
+    S xu, xv, j00, j01, j10, j11, p00, p01, p11, det;
+    S blur[3];
 };
 
 // Products and sums of the blend decision, each rounded on its own: on a GPU the compiler may otherwise fuse a
@@ -399,14 +412,83 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
     e.use3 = use3;
 }
 
-// c(u, v) = max(0, c0 + sum_k a_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp.
+// Anti-aliased (st.pixel_filter > 0): the pixel's Gaussian footprint, variance f = pixel_filter, is N(x, S) in the
+// surfel's frame around the hit x, S = f J J^T, J = d(u, v)/d(pixel). With P = (I + S)^-1 the surfel's falloff
+// averaged over the footprint is det(I + S)^-1/2 exp(-x^T P x / 2), and its colour the mean under N(P x, I - P): a
+// wave a cos(k.x + phi) becomes a exp(-k^T (I - P) k / 2) cos(k.(P x) + phi). Same as reference.footprint_filter.
+// Pairs with tr S > 1 / alpha_min^2 are culled (their gain alone is below alpha_min). Branch-free.
+template <class S>
+SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
+    S dx = radd(x, -g.cx), dy = radd(y, -g.cy);
+    S c0 = radd(radd(rmul(dx, g.A[0]), rmul(dy, g.B[0])), g.C[0]);
+    S c1 = radd(radd(rmul(dx, g.A[1]), rmul(dy, g.B[1])), g.C[1]);
+    S c2 = radd(radd(rmul(dx, g.A[2]), rmul(dy, g.B[2])), g.C[2]);
+    bool hit = sabs(c2) > rmul(S(st.parallel_eps), smax(sabs(c0), sabs(c1)));
+    S inv = S(1) / (hit ? c2 : S(1));
+    inv = hit ? inv : S(0);
+    S xu = rmul(c0, inv), xv = rmul(c1, inv);
+    S j00 = rmul(radd(g.A[0], -rmul(xu, g.A[2])), inv), j01 = rmul(radd(g.B[0], -rmul(xu, g.B[2])), inv);
+    S j10 = rmul(radd(g.A[1], -rmul(xv, g.A[2])), inv), j11 = rmul(radd(g.B[1], -rmul(xv, g.B[2])), inv);
+    const S f = S(st.pixel_filter);
+    S s00 = rmul(f, radd(rmul(j00, j00), rmul(j01, j01)));
+    S s01 = rmul(f, radd(rmul(j00, j10), rmul(j01, j11)));
+    S s11 = rmul(f, radd(rmul(j10, j10), rmul(j11, j11)));
+    bool keep = radd(s00, s11) <= S(1.0 / (st.alpha_min * st.alpha_min));  // false for NaN and inf too
+    s00 = keep ? s00 : S(0);
+    s01 = keep ? s01 : S(0);
+    s11 = keep ? s11 : S(0);
+    S det = radd(rmul(radd(S(1), s00), radd(S(1), s11)), -rmul(s01, s01));
+    S idet = S(1) / det;
+    S p00 = rmul(radd(S(1), s11), idet), p01 = rmul(-s01, idet), p11 = rmul(radd(S(1), s00), idet);
+    S q = radd(radd(rmul(rmul(p00, xu), xu), rmul(rmul(S(2) * p01, xu), xv)), rmul(rmul(p11, xv), xv));
+    S mu = radd(rmul(p00, xu), rmul(p01, xv)), mv = radd(rmul(p01, xu), rmul(p11, xv));
+    S z = radd(radd(rmul(g.m3[0], mu), rmul(g.m3[1], mv)), g.m3[2]);
+    S gain = sqrt(idet);
+    gain = hit ? gain : S(0);
+    gain = keep ? gain : S(0);
+    S ex = rmul(gain, sz_exp(rmul(S(-0.5), q)));
+    S raw = rmul(g.o, ex);
+    const S amax = S(st.alpha_max);
+    S a = raw < amax ? raw : amax;
+    a = a >= S(st.alpha_min) ? a : S(0);
+    e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
+    e.u = mu; e.v = mv; e.z = z; e.ex = ex; e.raw = raw;
+    e.alpha = z >= S(st.near) ? a : S(0);
+    e.use3 = true;
+    e.xu = xu; e.xv = xv; e.j00 = j00; e.j01 = j01; e.j10 = j10; e.j11 = j11;
+    e.p00 = p00; e.p01 = p01; e.p11 = p11; e.det = det;
+    e.blur[0] = S(1) - p00; e.blur[1] = -p01; e.blur[2] = S(1) - p11;
+}
+
+// Either evaluation, by the settings (a branch every thread of a launch takes the same way).
+template <class S>
+SZ_HD void eval_pair_any(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
+    if (st.pixel_filter > 0)
+        eval_pair_filtered(st, g, x, y, e);
+    else
+        eval_pair(st, g, x, y, e);
+}
+
+// Footprint attenuation of wave (kx, ky) under the blur (b00, b01, b11): exp(-k^T b k / 2).
+template <class S>
+SZ_HD S wave_gain(const S* blur, S kx, S ky) {
+    return sz_exp(S(-0.5) * (blur[0] * kx * kx + S(2) * blur[1] * kx * ky + blur[2] * ky * ky));
+}
+
+// c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp. g_k = 1,
+// or wave_gain(blur, k_k) when a blur is given (anti-aliased).
 template <int KMAX = -1, class S>
 SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int K, S u, S v, S col[3], S pre[3],
-                      S* sn_out = nullptr, S* cs_out = nullptr) {
+                      const S* blur = nullptr, S* sn_out = nullptr, S* cs_out = nullptr, S* gain_out = nullptr) {
     S r = base[0], gg = base[1], b = base[2];
     for_each_wave<KMAX>(K, [&](int k) {
         S sn, cs;
         sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
+        if (blur) {
+            const S gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
+            if (gain_out) gain_out[k] = gk;
+            cs *= gk;  // sn is only kept for the backward, which multiplies by the gain itself
+        }
         if (sn_out) {  // kept for the backward, which needs both
             sn_out[k] = sn;
             cs_out[k] = cs;
@@ -545,6 +627,68 @@ SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>
     acc(G_CENTER + 1, hit ? S(0) : S(-2 * st.filter_inv_sq) * v_rho * e.dy);
 }
 
+// geom_backward of an anti-aliased pair (eval_pair_filtered): d(alpha, z, colour centre P x, blur I - P) -> the
+// slots, through P = (I + S)^-1, det(I + S), S = f J J^T, J = d(u, v)/d(pixel) and the hit x = (c0, c1) / c2.
+// P's off-diagonal and the blur's are one parameter each (they appear twice in the symmetric matrix).
+template <class S, class Acc>
+SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S v_alpha, S v_z,
+                                  S v_mu, S v_mv, const S* v_blur, Acc& acc) {
+    const bool clamped = e.raw > S(st.alpha_max);
+    const S v_raw = clamped ? S(0) : v_alpha;
+    acc(G_O, v_raw * e.ex);
+    const S v_q = S(-0.5) * v_raw * e.raw;  // raw = o det^-1/2 exp(-q/2)
+    // z = m3 . (P x, 1)
+    v_mu += v_z * g.m3[0];
+    v_mv += v_z * g.m3[1];
+    acc(G_M3 + 0, v_z * e.u);
+    acc(G_M3 + 1, v_z * e.v);
+    acc(G_M3 + 2, v_z);
+    const S u = e.xu, v = e.xv;
+    // blur = I - P, colour centre = P x, q = x^T P x
+    const S v_p00 = -v_blur[0] + v_mu * u + v_q * u * u;
+    const S v_p01 = -v_blur[1] + v_mu * v + v_mv * u + S(2) * v_q * u * v;
+    const S v_p11 = -v_blur[2] + v_mv * v + v_q * v * v;
+    S v_u = e.p00 * v_mu + e.p01 * v_mv + S(2) * v_q * (e.p00 * u + e.p01 * v);
+    S v_v = e.p01 * v_mu + e.p11 * v_mv + S(2) * v_q * (e.p01 * u + e.p11 * v);
+    // P = [[1 + s11, -s01], [-s01, 1 + s00]] / det, det = (1 + s00)(1 + s11) - s01^2, gain = det^-1/2
+    const S f = S(st.pixel_filter);
+    const S s00 = f * (e.j00 * e.j00 + e.j01 * e.j01);
+    const S s01 = f * (e.j00 * e.j10 + e.j01 * e.j11);
+    const S s11 = f * (e.j10 * e.j10 + e.j11 * e.j11);
+    const S idet = S(1) / e.det;
+    const S v_det = S(-0.5) * v_raw * e.raw * idet -
+                    (v_p00 * (S(1) + s11) - v_p01 * s01 + v_p11 * (S(1) + s00)) * idet * idet;
+    const S v_s00 = v_p11 * idet + v_det * (S(1) + s11);
+    const S v_s11 = v_p00 * idet + v_det * (S(1) + s00);
+    const S v_s01 = -v_p01 * idet - S(2) * v_det * s01;
+    // S = f J J^T
+    const S v_j00 = f * (S(2) * e.j00 * v_s00 + e.j10 * v_s01);
+    const S v_j01 = f * (S(2) * e.j01 * v_s00 + e.j11 * v_s01);
+    const S v_j10 = f * (S(2) * e.j10 * v_s11 + e.j00 * v_s01);
+    const S v_j11 = f * (S(2) * e.j11 * v_s11 + e.j01 * v_s01);
+    // J = [[A0 - u A2, B0 - u B2], [A1 - v A2, B1 - v B2]] / c2
+    const S inv = S(1) / e.c2;
+    acc(G_A + 0, v_j00 * inv);
+    acc(G_A + 1, v_j10 * inv);
+    acc(G_A + 2, -(u * v_j00 + v * v_j10) * inv);
+    acc(G_B + 0, v_j01 * inv);
+    acc(G_B + 1, v_j11 * inv);
+    acc(G_B + 2, -(u * v_j01 + v * v_j11) * inv);
+    v_u -= (g.A[2] * v_j00 + g.B[2] * v_j01) * inv;
+    v_v -= (g.A[2] * v_j10 + g.B[2] * v_j11) * inv;
+    const S v_c2 = -(e.j00 * v_j00 + e.j01 * v_j01 + e.j10 * v_j10 + e.j11 * v_j11) * inv;
+    // x = (c0, c1) / c2
+    const S v_c[3] = {v_u * inv, v_v * inv, -(v_u * u + v_v * v) * inv + v_c2};
+    for (int i = 0; i < 3; ++i) {
+        acc(G_C + i, v_c[i]);
+        acc(G_CX + i, e.dx * v_c[i]);
+        acc(G_CY + i, e.dy * v_c[i]);
+    }
+    acc(G_ZC, S(0));  // no screen filter: the same slots as geom_backward, for the warp sums
+    acc(G_CENTER + 0, S(0));
+    acc(G_CENTER + 1, S(0));
+}
+
 // One contribution, back to front. Contributions must be visited in reverse blending order, each exactly once.
 // e: the pair (alpha > 0 and pos < last); base..wa: this surfel's colour parameters; n its normal.
 // Calls acc for the same slots in the same order whatever the pair (see geom_backward).
@@ -556,11 +700,14 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
     S Ti = p.T / oma;  // transmittance before this contribution
     S w = a * Ti;
     S col[3], pre[3];
-    // sin/cos of each wave phase, computed once for the colour and reused for its derivatives
+    const bool filtered = st.pixel_filter > 0;
+    const S* blur = filtered ? e.blur : nullptr;
+    // sin/cos (cos times the footprint gain) of each wave, computed once for the colour and reused for the derivatives
     constexpr int CACHE = KMAX >= 0 ? (KMAX > 0 ? KMAX : 1) : SINCOS_CACHE;
-    S sn_cache[CACHE], cs_cache[CACHE];
+    S sn_cache[CACHE], cs_cache[CACHE], gain_cache[CACHE];
     const bool cached = KMAX >= 0 || K <= SINCOS_CACHE;
-    wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, cached ? sn_cache : nullptr, cached ? cs_cache : nullptr);
+    wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, blur, cached ? sn_cache : nullptr,
+                     cached ? cs_cache : nullptr, cached ? gain_cache : nullptr);
     S m = ndc_depth(st, e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
     S f = p.v_rgb[0] * col[0] + p.v_rgb[1] * col[1] + p.v_rgb[2] * col[2] + p.v_D * e.z +
@@ -582,19 +729,35 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
     acc(G_BASE + 1, v_col[1]);
     acc(G_BASE + 2, v_col[2]);
     S v_u = S(0), v_v = S(0);
+    S v_blur[3] = {S(0), S(0), S(0)};
     for_each_wave<KMAX>(K, [&](int k) {
-        S sn, cs;
+        S sn, cs, gk = S(1);  // cs: the wave's factor in the colour, gain times cos
         if (cached) {
             sn = sn_cache[k];
             cs = cs_cache[k];
+            if (filtered) gk = gain_cache[k];
         } else {
             sz_sincos(e.u * wv[2 * k] + e.v * wv[2 * k + 1] + wp[k], sn, cs);
+            if (filtered) {
+                gk = wave_gain(e.blur, wv[2 * k], wv[2 * k + 1]);
+                cs *= gk;
+            }
         }
         S v_cos = v_col[0] * wa[3 * k] + v_col[1] * wa[3 * k + 1] + v_col[2] * wa[3 * k + 2];
-        S v_phase = -sn * v_cos;  // d/d(phase)
+        S v_phase = -sn * gk * v_cos;  // d/d(phase)
         int o = G_WAVES + G_PER_WAVE * k;
-        acc(o + 0, v_phase * e.u);
-        acc(o + 1, v_phase * e.v);
+        S v_kx = v_phase * e.u, v_ky = v_phase * e.v;
+        if (filtered) {  // the gain exp(-k^T b k / 2): d/dk = -gain b k, d/db = -gain k k^T / 2
+            const S v_g = cs * v_cos;  // (dL/d gain) times gain
+            const S kx = wv[2 * k], ky = wv[2 * k + 1];
+            v_kx -= v_g * (e.blur[0] * kx + e.blur[1] * ky);
+            v_ky -= v_g * (e.blur[1] * kx + e.blur[2] * ky);
+            v_blur[0] -= S(0.5) * v_g * kx * kx;
+            v_blur[1] -= v_g * kx * ky;
+            v_blur[2] -= S(0.5) * v_g * ky * ky;
+        }
+        acc(o + 0, v_kx);
+        acc(o + 1, v_ky);
         acc(o + 2, v_phase);
         acc(o + 3, cs * v_col[0]);
         acc(o + 4, cs * v_col[1]);
@@ -602,8 +765,12 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
         v_u += v_phase * wv[2 * k];
         v_v += v_phase * wv[2 * k + 1];
     });
-    // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
-    geom_backward(st, g, e, v_alpha, v_z, v_u, v_v, acc);
+    if (filtered) {
+        geom_backward_filtered(st, g, e, v_alpha, v_z, v_u, v_v, v_blur, acc);
+    } else {
+        // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
+        geom_backward(st, g, e, v_alpha, v_z, v_u, v_v, acc);
+    }
 }
 
 // A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
@@ -618,8 +785,8 @@ SZ_HD void finalize_grads(const S* T9, const S* center, const R* Gs, int K, S* v
         m2[i] = double(T9[3 + i]);
         m3[i] = double(T9[6 + i]);
         v_C[i] = double(Gs[G_C + i]);
-        v_A[i] = double(Gs[G_CX + i]) + cx * v_C[i];
-        v_B[i] = double(Gs[G_CY + i]) + cy * v_C[i];
+        v_A[i] = double(Gs[G_CX + i]) + cx * v_C[i] + double(Gs[G_A + i]);
+        v_B[i] = double(Gs[G_CY + i]) + cy * v_C[i] + double(Gs[G_B + i]);
     }
     // d(a x b): v_su_tu = b x g, v_sv_tv = g x a
     auto cross = [](const double* a, const double* b, double* out, double sign) {

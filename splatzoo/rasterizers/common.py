@@ -25,6 +25,10 @@ class RasterSettings:
     t_min: float = 1e-4            # stop before a contribution that would bring transmittance below this
     filter_inv_sq: float = 2.0     # screen-space low-pass filter: rho2d = filter_inv_sq * |pixel - centre|^2
     parallel_eps: float = 1e-6     # a ray with |c_z| <= parallel_eps max(|c_x|, |c_y|) misses the surfel's plane
+    # Anti-aliasing: variance (px^2) of a Gaussian pixel footprint that filters every surfel and every wave (its
+    # image in the surfel's (u, v) frame, through the ray-splat Jacobian); 0 turns it off and the surfel falls back
+    # to the screen-space filter above instead. PIXEL_FILTER is the value `antialias` models render with.
+    pixel_filter: float = 0.0
     tile: int = 16                 # tile size of the native tile rasterizers (compiled in: checked, not set)
 
     def __post_init__(self) -> None:
@@ -39,11 +43,20 @@ class RasterSettings:
         if not (0 < self.alpha_min <= self.alpha_max < 1):
             raise SplatzooError(f"RasterSettings: need 0 < alpha_min <= alpha_max < 1, got {self.alpha_min}, "
                                 f"{self.alpha_max}")
-        if not (0 <= self.t_min < 1) or self.filter_inv_sq <= 0 or self.parallel_eps < 0:
-            raise SplatzooError("RasterSettings: need 0 <= t_min < 1, filter_inv_sq > 0 and parallel_eps >= 0")
+        if not (0 <= self.t_min < 1) or self.filter_inv_sq <= 0 or self.parallel_eps < 0 or self.pixel_filter < 0:
+            raise SplatzooError("RasterSettings: need 0 <= t_min < 1, filter_inv_sq > 0, parallel_eps >= 0 and "
+                                "pixel_filter >= 0")
+
+    @property
+    def antialiased(self) -> bool:
+        return self.pixel_filter > 0
 
 
 SETTINGS = RasterSettings()
+# The pixel footprint of anti-aliased rendering: a Gaussian with the variance of a one-pixel box (1/12) rounded up,
+# as Mip-Splatting's screen filter; see footprint_filter below.
+PIXEL_FILTER = 0.1
+ANTIALIASED = RasterSettings(pixel_filter=PIXEL_FILTER)
 
 
 @dataclass
@@ -108,15 +121,31 @@ def screen_boxes(T, center_px, depth, opacities, cam: Camera, settings: RasterSe
     inf_box = torch.tensor([-big, -big, big, big], dtype=T.dtype, device=T.device).expand(n, 4)
     disc = torch.stack([cx - hx, cy - hy, cx + hx, cy + hy], -1)
     disc = torch.where(bounded[:, None], disc, inf_box)
-    rf = torch.sqrt(log_o.clamp_min(0) / (settings.filter_inv_sq / 2))
-    filt = torch.cat([center_px - rf[:, None], center_px + rf[:, None]], -1)
-    boxes = torch.cat([torch.minimum(disc[:, :2], filt[:, :2]), torch.maximum(disc[:, 2:], filt[:, 2:])], -1)
+    if settings.antialiased:
+        # footprint-filtered: the support is the disc's image dilated by the footprint's own r-sigma disc
+        pad = footprint_pad(r2, settings)
+        boxes = torch.cat([disc[:, :2] - pad[:, None], disc[:, 2:] + pad[:, None]], -1)
+    else:
+        rf = torch.sqrt(log_o.clamp_min(0) / (settings.filter_inv_sq / 2))
+        filt = torch.cat([center_px - rf[:, None], center_px + rf[:, None]], -1)
+        boxes = torch.cat([torch.minimum(disc[:, :2], filt[:, :2]), torch.maximum(disc[:, 2:], filt[:, 2:])], -1)
     boxes = torch.nan_to_num(boxes, nan=0.0, posinf=big, neginf=-big).clamp(-big, big)
     # slack for rounding: a box is a cull test, never a cut
     pad = 1e-3 * (1 + boxes.abs())
     boxes = boxes + torch.cat([-pad[:, :2], pad[:, 2:]], -1)
     on_screen = (boxes[:, 2] >= 0.5) & (boxes[:, 0] <= cam.width - 0.5) & (boxes[:, 3] >= 0.5) & (boxes[:, 1] <= cam.height - 0.5)
     return boxes, visible & on_screen
+
+
+def footprint_pad(r2: torch.Tensor, settings: RasterSettings) -> torch.Tensor:
+    """How far (pixels) the footprint filter spreads a surfel beyond the image of its support disc.
+
+    A pair is kept when o det(I + S)^-1/2 exp(-q/2) >= alpha_min, so q = x^T (I + S)^-1 x <= r^2 (det >= 1). As
+    q = min over x = a + b of |a|^2 + b^T S^-1 b, some a in the disc has |J^-1 b| <= r sqrt(pixel_filter): to first
+    order the pixel lies within r sqrt(pixel_filter) of the disc's image. The factor and the half pixel cover the
+    perspective's second-order term (the box is a cull test, never a cut: tests/test_antialias.py checks it).
+    """
+    return 1.25 * torch.sqrt(r2 * settings.pixel_filter) + 0.5
 
 
 def ndc_depth(z: torch.Tensor, settings: RasterSettings = SETTINGS) -> torch.Tensor:

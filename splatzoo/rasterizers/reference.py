@@ -94,17 +94,29 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
     cz_safe = torch.where(hits, cz, torch.ones_like(cz))
     u = torch.where(hits, cr[..., 0] / cz_safe, torch.zeros_like(cz))
     v = torch.where(hits, cr[..., 1] / cz_safe, torch.zeros_like(cz))
-    rho3d = u * u + v * v
-    d = torch.stack([px - proj.center_px[idx, 0], py - proj.center_px[idx, 1]], -1)  # [P,n,2]
-    rho2d = st.filter_inv_sq * (d * d).sum(-1)
-    use3d = hits & (rho3d <= rho2d)
-    rho = torch.where(use3d, rho3d, rho2d)
-    # where the screen filter wins, the surfel is seen as its centre (depth and colour at u = v = 0)
-    u = torch.where(use3d, u, torch.zeros_like(u))
-    v = torch.where(use3d, v, torch.zeros_like(v))
-    z = torch.where(use3d, m3[:, 0] * u + m3[:, 1] * v + m3[:, 2], proj.depth[idx].expand_as(u))
-    alpha = torch.clamp(s.opacities[idx] * torch.exp(-0.5 * rho), max=st.alpha_max)
-    valid = (alpha >= st.alpha_min) & (z >= st.near)
+    blur = None
+    if st.antialiased:
+        # the pixel footprint, seen in the surfel's frame, filters the surfel and its waves (footprint_filter)
+        A, B = torch.linalg.cross(m2, m3), torch.linalg.cross(m3, m1)  # dc/dx and dc/dy
+        inv = 1 / cz_safe
+        jac = ((A[:, 0] - u * A[:, 2]) * inv, (B[:, 0] - u * B[:, 2]) * inv,
+               (A[:, 1] - v * A[:, 2]) * inv, (B[:, 1] - v * B[:, 2]) * inv)
+        gain, q, (u, v), blur = footprint_filter(u, v, jac, st, hits)
+        z = m3[:, 0] * u + m3[:, 1] * v + m3[:, 2]
+        alpha = torch.clamp(s.opacities[idx] * gain * torch.exp(-0.5 * q), max=st.alpha_max)
+        valid = hits & (gain > 0) & (alpha >= st.alpha_min) & (z >= st.near)
+    else:
+        rho3d = u * u + v * v
+        d = torch.stack([px - proj.center_px[idx, 0], py - proj.center_px[idx, 1]], -1)  # [P,n,2]
+        rho2d = st.filter_inv_sq * (d * d).sum(-1)
+        use3d = hits & (rho3d <= rho2d)
+        rho = torch.where(use3d, rho3d, rho2d)
+        # where the screen filter wins, the surfel is seen as its centre (depth and colour at u = v = 0)
+        u = torch.where(use3d, u, torch.zeros_like(u))
+        v = torch.where(use3d, v, torch.zeros_like(v))
+        z = torch.where(use3d, m3[:, 0] * u + m3[:, 1] * v + m3[:, 2], proj.depth[idx].expand_as(u))
+        alpha = torch.clamp(s.opacities[idx] * torch.exp(-0.5 * rho), max=st.alpha_max)
+        valid = (alpha >= st.alpha_min) & (z >= st.near)
     alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
     # front-to-back compositing; a prefix of the surfels is kept until T would fall below t_min
     T_after = torch.cumprod(1 - alpha, dim=1)
@@ -112,7 +124,7 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
     kept = T_after >= st.t_min
     weight = torch.where(kept, alpha * T_before, torch.zeros_like(alpha))  # [P,n]
     T_final = torch.prod(torch.where(kept, 1 - alpha, torch.ones_like(alpha)), dim=1)
-    color = _wave_color(s, idx, u, v)  # [P,n,3]
+    color = _wave_color(s, idx, u, v, blur)  # [P,n,3]
     rgb = (weight[..., None] * color).sum(1)
     acc = 1 - T_final
     z_safe = torch.where(valid, z, torch.ones_like(z))
@@ -135,8 +147,38 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
             "distortion": distortion.reshape(h, w)}
 
 
-def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """c(u, v) = max(0, c0 + sum_k a_k cos(k_k . (u, v) + phi_k)) for every pair -> [P,n,3]."""
+def footprint_filter(u, v, jac, st: RasterSettings, hits):
+    """The surfel's Gaussian and its colour seen through a Gaussian pixel footprint (anti-aliasing).
+
+    The footprint, variance st.pixel_filter in pixels, is N(x, S) in the surfel's frame around the hit x = (u, v),
+    with S = pixel_filter J J^T and J = d(u, v)/d(pixel) (jac = J00, J01, J10, J11). With P = (I + S)^-1:
+    - the surfel's falloff exp(-|x'|^2/2) averaged over the footprint is gain exp(-q/2), gain = det(I + S)^-1/2 and
+      q = x^T P x: a surfel much smaller than a pixel keeps its coverage, not its peak;
+    - the colour, averaged over the footprint weighted by that falloff, is the colour's mean under N(P x, I - P):
+      a wave a cos(k.x' + phi) becomes a exp(-k^T (I - P) k / 2) cos(k.(P x) + phi).
+    S -> 0 gives back the unfiltered surfel; S -> infinity (a sub-pixel surfel) its mean colour over its Gaussian.
+    Returns gain (0 where the pair is culled), q, the colour's centre P x, and (I - P) as (b00, b01, b11).
+    Pairs with tr S > 1 / alpha_min^2 are culled: their gain alone is below alpha_min.
+    """
+    j00, j01, j10, j11 = jac
+    f = st.pixel_filter
+    s00 = f * (j00 * j00 + j01 * j01)
+    s01 = f * (j00 * j10 + j01 * j11)
+    s11 = f * (j10 * j10 + j11 * j11)
+    keep = hits & (s00 + s11 <= 1 / st.alpha_min ** 2)
+    zero = torch.zeros_like(s00)
+    s00, s01, s11 = (torch.where(keep, t, zero) for t in (s00, s01, s11))
+    det = (1 + s00) * (1 + s11) - s01 * s01
+    p00, p01, p11 = (1 + s11) / det, -s01 / det, (1 + s00) / det
+    gain = torch.where(keep, torch.rsqrt(det), zero)
+    q = p00 * u * u + 2 * p01 * u * v + p11 * v * v
+    mu = (p00 * u + p01 * v, p01 * u + p11 * v)
+    return gain, q, mu, (1 - p00, -p01, 1 - p11)
+
+
+def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None) -> torch.Tensor:
+    """c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)) for every pair -> [P,n,3]. g_k = 1, or with
+    blur = (b00, b01, b11) (the footprint's covariance in the surfel's frame) exp(-k_k^T b k_k / 2)."""
     base = s.base_color[idx]  # [n,3]
     if s.num_waves == 0:
         return torch.clamp(base.expand(u.shape[0], -1, -1), min=0)
@@ -148,5 +190,10 @@ def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor)
         # into them (their phase's only path to the colour is through the zeroed amplitude)
         on = torch.arange(s.num_waves, device=amp.device) < s.wave_counts[idx][:, None]
         amp = torch.where(on[..., None], amp, torch.zeros_like(amp))
-    color = base + torch.einsum("pnk,nkc->pnc", torch.cos(phase), amp)
+    wave = torch.cos(phase)
+    if blur is not None:
+        b00, b01, b11 = (b[..., None] for b in blur)
+        kx, ky = k[:, :, 0], k[:, :, 1]
+        wave = wave * torch.exp(-0.5 * (b00 * kx * kx + 2 * b01 * kx * ky + b11 * ky * ky))
+    color = base + torch.einsum("pnk,nkc->pnc", wave, amp)
     return torch.clamp(color, min=0)
