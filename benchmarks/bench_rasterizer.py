@@ -1,6 +1,7 @@
 """Rasterizer benchmark: forward and forward+backward time per backend, for 2DGS (K=0) and Gabor (K=4) surfels.
 
     python benchmarks/bench_rasterizer.py [--json out.json] [--repeats 3] [--quick | --gpu] [--backends cpu,cuda]
+                                          [--antialias off,on]
     splatzoo bench [...]              (the same, from the CLI)
 
 Scenes: "sphere" (surfels on a sphere and a back wall, 1-4 px sigma, opacity 0.2-1) and "dense" (surfels spread
@@ -10,6 +11,8 @@ uniformly from 0..4. "pairs" counts the (surfel, pixel) pairs a tile loop evalua
 the pixel rows of the tile inside the surfel's exact screen box, 16 pixels each; rates are per core for the CPU
 (divided by torch.get_num_threads()) and per GPU for CUDA. Times are end to end (`rasterize`, every field requiring
 grad; the backward of a loss on rgb, depth, normal and distortion), median of --repeats after one warm-up.
+--antialias off,on times each case without and with the pixel-footprint filter (RasterSettings.pixel_filter), one
+right after the other, and prints the ratio.
 """
 from __future__ import annotations
 
@@ -88,15 +91,17 @@ def machine_info() -> dict:
 
 
 def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3, reference_repeats: int = 1,
-                  json_path: str | os.PathLike | None = None, echo=print) -> dict:
-    """Run every (config, backend, waves) and return {"machine": ..., "results": [...]}; optionally write JSON."""
+                  json_path: str | os.PathLike | None = None, echo=print, antialias=("off",)) -> dict:
+    """Run every (config, backend, waves, antialias) and return {"machine": ..., "results": [...]}; optionally write
+    JSON. antialias: "off" and/or "on" (the pixel-footprint filter)."""
     from splatzoo.rasterizers import BACKENDS, rasterize
+    from splatzoo.rasterizers.common import ANTIALIASED, SETTINGS
 
     if backends is None:
         backends = [b for b in ("cuda", "cpu", "reference") if BACKENDS.get(b).available()]
     threads = torch.get_num_threads()
     results = []
-    header = f"{'scene':<22}{'backend':<11}{'K':>3}{'fwd ms':>11}{'fwd+bwd ms':>12}{'pairs':>14}{'Mpairs/s':>11}"
+    header = f"{'scene':<22}{'backend':<11}{'K':>3}{'AA':>4}{'fwd ms':>11}{'fwd+bwd ms':>12}{'pairs':>14}{'Mpairs/s':>11}"
     echo(header)
     echo("-" * len(header))
     for name, kind, W, H, n, allowed in configs:
@@ -112,23 +117,28 @@ def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3,
                 sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
                 reps = reference_repeats if backend == "reference" else repeats
 
-                def fwd():
-                    with torch.no_grad():
-                        rasterize(s, cam, backend=b)
+                for aa in antialias:
+                    settings = ANTIALIASED if aa == "on" else SETTINGS
 
-                def fwd_bwd():
-                    out = rasterize(s, cam, backend=b)
-                    loss = out.rgb.sum() + out.depth.sum() + out.normal.sum() + out.distortion.sum()
-                    loss.backward()
+                    def fwd():
+                        with torch.no_grad():
+                            rasterize(s, cam, backend=b, settings=settings)
 
-                t_f = _time(fwd, reps, sync)
-                t_fb = _time(fwd_bwd, reps, sync)
-                cores = threads if device.type == "cpu" else 1
-                row = {"scene": name, "kind": kind, "width": W, "height": H, "surfels": n, "K": K,
-                       "backend": backend, "forward_ms": round(t_f, 3), "forward_backward_ms": round(t_fb, 3),
-                       "pairs": pairs, "pairs_per_s": pairs / (t_f / 1e3) / cores, "threads": cores}
-                results.append(row)
-                echo(f"{name:<22}{backend:<11}{K:>3}{t_f:>11.2f}{t_fb:>12.2f}{pairs:>14,}{row['pairs_per_s'] / 1e6:>11.1f}")
+                    def fwd_bwd():
+                        out = rasterize(s, cam, backend=b, settings=settings)
+                        loss = out.rgb.sum() + out.depth.sum() + out.normal.sum() + out.distortion.sum()
+                        loss.backward()
+
+                    t_f = _time(fwd, reps, sync)
+                    t_fb = _time(fwd_bwd, reps, sync)
+                    cores = threads if device.type == "cpu" else 1
+                    row = {"scene": name, "kind": kind, "width": W, "height": H, "surfels": n, "K": K,
+                           "backend": backend, "antialias": aa, "forward_ms": round(t_f, 3),
+                           "forward_backward_ms": round(t_fb, 3), "pairs": pairs,
+                           "pairs_per_s": pairs / (t_f / 1e3) / cores, "threads": cores}
+                    results.append(row)
+                    echo(f"{name:<22}{backend:<11}{K:>3}{aa:>4}{t_f:>11.2f}{t_fb:>12.2f}{pairs:>14,}"
+                         f"{row['pairs_per_s'] / 1e6:>11.1f}")
                 del s
     report = {"machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M"), "results": results}
     _summary(results, echo)
@@ -143,9 +153,9 @@ def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3,
 
 
 def _summary(results, echo):
-    def get(scene, backend, K, key):
+    def get(scene, backend, K, key, aa="off"):
         for r in results:
-            if r["scene"] == scene and r["backend"] == backend and r["K"] == K:
+            if r["scene"] == scene and r["backend"] == backend and r["K"] == K and r.get("antialias", "off") == aa:
                 return r[key]
         return None
 
@@ -161,6 +171,10 @@ def _summary(results, echo):
                 if k0 and k4:
                     extra = f", K=4a / K=0 = {k4a / k0:.2f}" if k4a else ""
                     echo(f"{scene}: {native} {what} K=4 / K=0 = {k4 / k0:.2f}{extra}")
+                for K in ("0", "4", "4a"):
+                    off, on = get(scene, native, K, key), get(scene, native, K, key, "on")
+                    if off and on:
+                        echo(f"{scene}: {native} {what} K={K} antialiased / plain = {on / off:.2f}")
 
 
 def main(argv=None) -> int:
@@ -172,11 +186,15 @@ def main(argv=None) -> int:
     group = ap.add_mutually_exclusive_group()
     group.add_argument("--quick", action="store_true", help="only the 128x128 scenes")
     group.add_argument("--gpu", action="store_true", help="the 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)")
+    ap.add_argument("--antialias", default="off", help="off, on, or off,on (both, side by side)")
     args = ap.parse_args(argv)
+    modes = tuple(args.antialias.split(","))
+    if not modes or set(modes) - {"off", "on"}:
+        ap.error("--antialias takes off, on or off,on")
     backends = args.backends.split(",") if args.backends else None
     configs = CONFIGS[:2] if args.quick else GPU_CONFIGS if args.gpu else CONFIGS
     run_benchmark(backends=backends, waves=tuple(args.waves.split(",")), configs=configs, repeats=args.repeats,
-                  json_path=args.json)
+                  json_path=args.json, antialias=modes)
     return 0
 
 

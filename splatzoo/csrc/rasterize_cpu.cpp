@@ -44,12 +44,15 @@ __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Ge
         S* ur = us + r * TILE;
         S* vr = vs + r * TILE;
         S* zr = zs + r * TILE;
+        S *b0 = sc.blur[0] + r * TILE, *b1 = sc.blur[1] + r * TILE, *b2 = sc.blur[2] + r * TILE;
 #pragma omp simd
         for (int c = 0; c < TILE; ++c) {
             PairEval<S> e;
             if constexpr (FILTERED) {
                 eval_pair_filtered(st, gl, xs[c], y, e);
-                for (int b = 0; b < 3; ++b) sc.blur[b][r * TILE + c] = e.blur[b];
+                b0[c] = e.blur[0];
+                b1[c] = e.blur[1];
+                b2[c] = e.blur[2];
             } else {
                 eval_pair(st, gl, xs[c], y, e);
             }
