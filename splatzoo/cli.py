@@ -171,7 +171,7 @@ _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, refer
 
 
 _TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "num_primitives", "max_primitives", "lambda_dist",
-                 "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc")
+                 "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc", "antialias")
 
 
 def _given(ctx: typer.Context) -> set[str]:
@@ -210,6 +210,8 @@ def train_command(
                                    "sqrt(views per step), Adam betas to that power)"),
     nproc: int = typer.Option(1, "--nproc", help="data-parallel processes (torch.distributed: gloo on CPU, NCCL "
                               "on CUDA); each renders --batch-size views per step"),
+    antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render with the "
+                                   "pixel-footprint filter: alias-free when rendered smaller than trained"),
     viewer: bool = typer.Option(False, "--viewer", help="watch training live in the browser (see `splatzoo view`); "
                                 "it stays open after training until Ctrl-C"),
     viewer_port: int = typer.Option(8080, "--viewer-port", help="port of the live viewer"),
@@ -297,13 +299,19 @@ def eval_command(
     lpips_net: str = typer.Option("vgg", "--lpips-net", help="vgg or alex"),
     lpips_convention: str = typer.Option("3dgs", "--lpips-convention",
                                          help="3dgs ([0,1] inputs, as the paper's tables) or standard ([-1,1])"),
+    scale: Optional[str] = typer.Option(None, "--scale", help="also render smaller, e.g. 0.5,0.25, and score "
+                                        "against area-averaged images and the model's own full-size render"),
 ) -> None:
     """Evaluate a trained run on its test views; prints a table and writes RUN/metrics.json."""
-    from .evaluate import metrics_table
+    from .evaluate import metrics_table, parse_scales, scales_table
     from .runs import evaluate_run
 
-    metrics = evaluate_run(run, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention)
+    scales = parse_scales(scale) if scale is not None else ()
+    metrics = evaluate_run(run, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention,
+                           scales=scales)
     typer.echo(metrics_table(metrics))
+    if scales:
+        typer.echo(scales_table(metrics))
     typer.echo(f"wrote {Path(run) / 'metrics.json'}")
 
 

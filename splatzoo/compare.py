@@ -258,8 +258,8 @@ def plot_comparison(scene, run_dirs: dict[str, Run], path, *, backend: str = "au
             cells.append((label, render_view(m, v.camera, scene.background, backend)))
         for label, m in models.items():
             cam = v.camera.to(dtype=torch.float32)
-            img = rasterize(random_color_surfels(m, cam), cam, backend=backend,
-                            background=torch.ones(3)).rgb.clamp(0, 1)
+            img = rasterize(random_color_surfels(m, cam), cam, backend=backend, background=torch.ones(3),
+                            settings=m.raster_settings).rgb.clamp(0, 1)
             cells.append((f"{label} surfels", img))
         for c, (title, img) in enumerate(cells):
             ax = axes[r, c]

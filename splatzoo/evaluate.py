@@ -28,7 +28,8 @@ def render_view(model, camera: Camera, background, backend: str) -> torch.Tensor
     device = _device(model)
     cam = camera.to(device, torch.float32)
     bg = torch.tensor(background, dtype=torch.float32, device=device)
-    return rasterize(model.surfels(cam), cam, backend=backend, background=bg).rgb.clamp(0, 1).cpu()
+    return rasterize(model.surfels(cam), cam, backend=backend, background=bg,
+                     settings=model.raster_settings).rgb.clamp(0, 1).cpu()
 
 
 @torch.no_grad()
@@ -40,14 +41,14 @@ def measure_fps(model, cameras: list[Camera], background, backend: str, min_fram
     cams = [c.to(device, torch.float32) for c in cameras]
     bg = torch.tensor(background, dtype=torch.float32, device=device)
     for c in cams[:2]:
-        rasterize(model.surfels(c), c, backend=backend, background=bg)
+        rasterize(model.surfels(c), c, backend=backend, background=bg, settings=model.raster_settings)
     frames = max(min_frames, len(cams))
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     sync()
     t0 = time.perf_counter()
     for i in range(frames):
         c = cams[i % len(cams)]
-        rasterize(model.surfels(c), c, backend=backend, background=bg)
+        rasterize(model.surfels(c), c, backend=backend, background=bg, settings=model.raster_settings)
     sync()
     return frames / (time.perf_counter() - t0)
 
@@ -80,6 +81,64 @@ def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None
         "conventions": {"psnr": "mean of per-image PSNR", "ssim": "3DGS: 11x11 Gaussian, sigma 1.5, zero padding",
                         "lpips": f"v0.1 {lpips_net}, {lpips_convention} input convention"},
     }
+
+
+def parse_scales(text: str) -> list[float]:
+    """'0.5,0.25' -> [0.5, 0.25]: render scales below 1 (`splatzoo eval --scale`)."""
+    try:
+        scales = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise SplatzooError(f"--scale takes numbers separated by commas, such as 0.5,0.25; got {text!r}") from None
+    bad = [s for s in scales if not (0 < s < 1)]
+    if not scales or bad:
+        raise SplatzooError(f"--scale: each scale must be between 0 and 1 (a render smaller than the test images), "
+                            f"got {text!r}")
+    return scales
+
+
+def area_resize(img: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """float [H,W,C] averaged over the area each output pixel covers (exact box means for integer factors)."""
+    import cv2
+
+    out = cv2.resize(img.numpy().astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(out.reshape(height, width, -1))
+
+
+def evaluate_scales(model, scene, scales, *, backend: str = "auto", lpips_net: str = LPIPS_NET,
+                    lpips_convention: str = LPIPS_CONVENTION) -> dict:
+    """Quality when rendered smaller than the test images: per scale, PSNR/SSIM/LPIPS of the small render against
+    the area-averaged ground truth, and "consistency": PSNR of the small render against the area average of the
+    model's own full-size render (an alias-free renderer scores high; a point-sampled one is dark and noisy)."""
+    from .metrics import lpips, psnr, ssim
+
+    backend = resolve_backend(backend, _device(model))
+    views = scene.test or scene.train
+    out = {}
+    for scale in scales:
+        ps, ss, ls, cs = [], [], [], []
+        for v in views:
+            cam = v.camera.scaled(scale)
+            small = render_view(model, cam, scene.background, backend)
+            gt = area_resize(v.image_float(), cam.width, cam.height)
+            full = area_resize(render_view(model, v.camera, scene.background, backend), cam.width, cam.height)
+            ps.append(psnr(small, gt))
+            ss.append(ssim(small, gt))
+            ls.append(lpips(small, gt, net=lpips_net, convention=lpips_convention) if min(gt.shape[:2]) >= 32
+                      else float("nan"))
+            cs.append(psnr(small, full))
+        out[f"{scale:g}"] = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "lpips": float(np.mean(ls)),
+                             "consistency_psnr": float(np.mean(cs)), "resolution": [cam.width, cam.height]}
+    return out
+
+
+def scales_table(m: dict) -> str:
+    """The "scales" entry of metrics.json as aligned rows."""
+    rows = [f"{'scale':<7}{'size':>10}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'vs own full-size render':>26}"]
+    for key, r in m.get("scales", {}).items():
+        size = f"{r['resolution'][0]}x{r['resolution'][1]}"
+        rows.append(f"{key:<7}{size:>10}{r['psnr']:>8.2f}{r['ssim']:>8.4f}{r['lpips']:>8.4f}"
+                    f"{r['consistency_psnr']:>23.2f} dB")
+    return "\n".join(rows)
 
 
 def metrics_table(m: dict) -> str:

@@ -132,7 +132,7 @@ def render_depth_frames(model, cameras: Iterable[Camera], *, depth: str = "media
     bg = torch.zeros(3, dtype=torch.float32, device=device)
     for cam in cameras:
         c = cam.to(device, torch.float32)
-        out = rasterize(model.surfels(c), c, backend=backend, background=bg)
+        out = rasterize(model.surfels(c), c, backend=backend, background=bg, settings=model.raster_settings)
         alpha = out.alpha
         d = out.median_depth if depth == "median" else out.depth
         keep = (alpha >= alpha_threshold) & torch.isfinite(d) & (d > 0)

@@ -762,9 +762,10 @@ def load_run(run_dir, backend: str | None = None):
 
 
 def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None,
-                 lpips_convention: str | None = None) -> dict:
-    """Evaluate a finished run on its test views and write RUN/metrics.json."""
-    from .evaluate import LPIPS_CONVENTION, LPIPS_NET, evaluate
+                 lpips_convention: str | None = None, scales=()) -> dict:
+    """Evaluate a finished run on its test views and write RUN/metrics.json; `scales` (each below 1) adds the
+    metrics of smaller renders against area-averaged images (evaluate_scales) as its "scales" entry."""
+    from .evaluate import LPIPS_CONVENTION, LPIPS_NET, evaluate, evaluate_scales
 
     run = Run(run_dir)
     with run.lock("splatzoo eval"):
@@ -773,6 +774,9 @@ def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None
         metrics = evaluate(model, scene, backend=backend, train_seconds=(old or {}).get("train_seconds"),
                            iterations=record["train"].get("iterations"), lpips_net=lpips_net or LPIPS_NET,
                            lpips_convention=lpips_convention or LPIPS_CONVENTION)
+        if scales:
+            metrics["scales"] = evaluate_scales(model, scene, scales, backend=backend, lpips_net=lpips_net or LPIPS_NET,
+                                                lpips_convention=lpips_convention or LPIPS_CONVENTION)
         run.write_metrics(metrics)
     return metrics
 

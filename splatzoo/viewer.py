@@ -174,7 +174,7 @@ def render_view(model, cam: Camera, mode: str = "rgb", *, background=(0.0, 0.0, 
         elif mode == "frequency":  # 0.5 cycles per pixel (Nyquist) in the middle of the map
             surfels = _flat(surfels, _colormap(surfel_cycles_per_pixel(surfels, cam)))
             bg = (0.0, 0.0, 0.0)
-        out = rasterize(surfels, cam, backend=backend, background=bg)
+        out = rasterize(surfels, cam, backend=backend, background=bg, settings=model.raster_settings)
         if mode in ("rgb", "surfels", "waves", "frequency"):
             image = out.rgb
         elif mode == "alpha":

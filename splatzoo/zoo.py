@@ -166,6 +166,9 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     name, config, state = ckpt["model"], ckpt["config"], ckpt["state"]
     if not isinstance(name, str) or not isinstance(config, dict) or not isinstance(state, dict):
         raise fail("not a splatzoo model: 'model' must be a name, 'config' and 'state' dicts")
+    antialias = ckpt.get("antialias", False)
+    if not isinstance(antialias, bool):
+        raise fail(f"'antialias' must be true or false, found {_brief(antialias)}")
     try:
         spec = MODELS.get(name)
     except SplatzooError as e:  # unknown or broken plugin model: the registry's message, located
@@ -211,6 +214,7 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
                    f"({type(e).__name__}: {_brief(e)})") from None
     _check_shapes(name, expected, {**model.state_dict(), **model.per_primitive()}, variable, fail)
     model.name = name
+    model.antialias = antialias
     return model
 
 

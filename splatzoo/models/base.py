@@ -38,6 +38,9 @@ class SplatModel(nn.Module):
     dimension num_primitives, initialise them in `init_from_points`, and implement `surfels(camera)`."""
 
     name: str = ""  # set from the registry spec when created through create_model
+    # rendered with the pixel-footprint filter (RasterSettings.pixel_filter): trained so, and so every render of it
+    # (evaluation, viewer, mesh) must be; kept in the checkpoint
+    antialias: bool = False
     # names of buffers with one row per primitive (e.g. per-surfel wave counts): densification and loading edit
     # them with the parameters; they are not trained
     primitive_buffers: tuple[str, ...] = ()
@@ -61,6 +64,13 @@ class SplatModel(nn.Module):
         raise NotImplementedError
 
     # --- generic helpers ----------------------------------------------------------------------------
+    @property
+    def raster_settings(self):
+        """The rasterizer settings this model is rendered with (see `antialias`)."""
+        from ..rasterizers.common import ANTIALIASED, SETTINGS
+
+        return ANTIALIASED if self.antialias else SETTINGS
+
     @property
     def num_primitives(self) -> int:
         return next(iter(self.per_primitive().values())).shape[0]
@@ -152,8 +162,11 @@ class SplatModel(nn.Module):
         return model
 
     def checkpoint(self) -> dict:
-        return {"model": self.name, "config": dataclasses.asdict(self.config),
-                "state": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
+        ck = {"model": self.name, "config": dataclasses.asdict(self.config),
+              "state": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
+        if self.antialias:  # absent means False: checkpoints from before the option load unchanged
+            ck["antialias"] = True
+        return ck
 
     def load_checkpoint_state(self, state: dict) -> None:
         """Inverse of checkpoint()["state"] on a model built with 0 primitives."""

@@ -59,6 +59,9 @@ class TrainConfig:
     checkpoint_every: int = field(default=2000, metadata={"operational": True})     # iterations (not scaled)
     checkpoint_minutes: float = field(default=5.0, metadata={"operational": True})  # also by time; 0: off
     eval_every: int = 0            # test PSNR every this many iterations; 0: ten times per run
+    antialias: bool = field(default=False, metadata={
+        "help": "train (and render the model) with the pixel-footprint filter: sharp and alias-free when rendered "
+                "smaller than trained"})
     log_every: int = 10
 
     def validate(self) -> "TrainConfig":
@@ -166,6 +169,7 @@ class Trainer:
         """A fresh run: the model initialised from the scene's points (chosen by the seed)."""
         pts, cols = select_initial_points(scene.points, scene.colors, cfg.num_primitives, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
+        net.antialias = cfg.antialias
         return cls(scene, net, cfg, backend, device, comm=comm)
 
     @classmethod
@@ -194,7 +198,8 @@ class Trainer:
             bg = bg.to(self.device)
         else:
             target, bg = view.image_float().to(self.device), self.background
-        render = rasterize(self.net.surfels(cam), cam, backend=self.backend, background=bg)
+        render = rasterize(self.net.surfels(cam), cam, backend=self.backend, background=bg,
+                           settings=self.net.raster_settings)
         l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
         loss = l_photo
         if cfg.lambda_normal > 0 and step > cfg.at(cfg.normal_from):
@@ -290,6 +295,7 @@ def test_psnr(model, scene, backend: str, max_views: int = 8) -> float:
     vals = []
     for v in views:
         cam = v.camera.to(device, torch.float32)
-        rgb = rasterize(model.surfels(cam), cam, backend=backend, background=bg).rgb.clamp(0, 1)
+        rgb = rasterize(model.surfels(cam), cam, backend=backend, background=bg,
+                        settings=model.raster_settings).rgb.clamp(0, 1)
         vals.append(min(psnr(rgb.cpu(), v.image_float()), 100.0))
     return float(sum(vals) / len(vals))
