@@ -6,6 +6,7 @@ never cut, and every native backend against the reference, outputs and gradients
 """
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -13,7 +14,8 @@ import torch
 
 from splatzoo.rasterizers import common, rasterize
 from splatzoo.rasterizers.common import ANTIALIASED, SETTINGS, RasterSettings
-from splatzoo.testing import sphere_and_wall
+from splatzoo.rasterizers.reference import rasterize_reference
+from splatzoo.testing import dense_overlap, sphere_and_wall
 from splatzoo.types import Camera, Surfels
 from test_native import EMULATED, FIELDS, _check_grads, _cotangent, _render_and_grads
 
@@ -110,18 +112,44 @@ def test_a_small_render_is_the_area_average_of_a_big_one():
     assert psnr["aa"] > 30 and psnr["aa"] > psnr["plain"] + 5, psnr
 
 
-def test_boxes_never_cut_a_filtered_surfel(monkeypatch):
-    """The footprint's padding of the culling boxes is conservative: a render with boxes 100 pixels wider is the
-    same, on surfels seen face on, at grazing angles, sub-pixel and large."""
-    for seed, sigma in ((1, (0.05, 0.5)), (2, (1.0, 6.0)), (3, (10.0, 40.0))):
-        s, cam = sphere_and_wall(300, 48, 40, K=2, seed=seed, dtype=D, px_sigma=sigma)
-        tight = rasterize(s, cam, backend="reference", settings=ANTIALIASED)
-        pad = common.footprint_pad
+@pytest.mark.parametrize("seed", [0, 13, 36])
+def test_boxes_bound_a_filtered_surfel(monkeypatch, seed):
+    """The culling boxes of the footprint-widened support are exact for surfels seen face on and trim at most a
+    faint fringe of nearly edge-on ones: the reference, split into rectangles small enough that boxes decide what it
+    shades where, against the same with boxes 300 pixels wider (where the reference shades every pixel)."""
+    exact = common.screen_boxes
+
+    def wide_boxes(*args, **kw):
+        boxes, visible = exact(*args, **kw)
+        return boxes + torch.tensor([-300.0, -300.0, 300.0, 300.0], dtype=boxes.dtype), visible
+
+    cases = [(sphere_and_wall, {"px_sigma": (0.05, 0.5)}, 5e-3), (sphere_and_wall, {"px_sigma": (1.0, 6.0)}, 5e-3),
+             (sphere_and_wall, {"px_sigma": (10.0, 60.0)}, 5e-3),
+             (dense_overlap, {"px_sigma": (0.3, 8.0), "max_tilt_deg": 89.0}, 5e-3),
+             (dense_overlap, {"px_sigma": (0.1, 20.0), "max_tilt_deg": 0.0}, 1e-12)]  # face on: exact
+    for make, kw, tol in cases:
+        s, cam = make(100, 32, 24, 1, seed=seed, dtype=D, **kw)
+        s.opacities.fill_(1.0)
+        tight = rasterize_reference(s, cam, settings=ANTIALIASED, pair_budget=64)
         with monkeypatch.context() as m:
-            m.setattr(common, "footprint_pad", lambda r2, st: pad(r2, st) + 100.0)
-            wide = rasterize(s, cam, backend="reference", settings=ANTIALIASED)
-        for k in FIELDS:
-            torch.testing.assert_close(getattr(tight, k), getattr(wide, k), rtol=0, atol=1e-12, msg=k)
+            m.setattr(common, "screen_boxes", wide_boxes)
+            wide = rasterize_reference(s, cam, settings=ANTIALIASED, pair_budget=64)
+        assert (tight.alpha > 0).any()
+        for k in ("rgb", "alpha"):
+            err = (getattr(tight, k) - getattr(wide, k)).abs().max().item()
+            assert err <= tol, (make.__name__, kw, k, err)
+
+
+def test_the_header_uses_the_python_footprint_constants():
+    """The culling constants are written twice (common.py and csrc/surfel_math.h, which has no Python): equal."""
+    import re
+    from pathlib import Path
+
+    header = (Path(common.__file__).parent.parent / "csrc" / "surfel_math.h").read_text()
+    for name, value in (("FOOTPRINT_PAD", common.FOOTPRINT_PAD), ("FOOTPRINT_PAD_PX", common.FOOTPRINT_PAD_PX),
+                        ("LINEAR_LIMIT", common.LINEAR_LIMIT)):
+        found = re.search(rf"constexpr double {name} = ([0-9.e+-]+);", header)
+        assert found and float(found.group(1)) == value, name
 
 
 @pytest.mark.parametrize("K", [0, 3])
@@ -161,3 +189,63 @@ def test_gradcheck_including_the_means(native_backend):
         return tuple(getattr(out, k) * w for k, w in zip(FIELDS, (1.0, 0.7, 0.3, 0.2, 0.5, 2.0)))
 
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)
+
+
+# ---- training with it, evaluating at other scales -----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def small_data(tmp_path_factory):
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    return make_synthetic_scene("sweater", tmp_path_factory.mktemp("data") / "sweater", views=8, width=48, height=48)
+
+
+def test_an_antialiased_run_keeps_the_filter_and_eval_scores_smaller_renders(small_data, tmp_path):
+    """`train --antialias`: recorded, kept in the model file, and used by every render of the model; `eval --scale`
+    writes per-scale metrics against area-averaged images and the model's own full-size render."""
+    from typer.testing import CliRunner
+
+    from splatzoo.cli import app
+    from splatzoo.evaluate import render_view
+    from splatzoo.zoo import load_model
+
+    runner = CliRunner()
+    run = tmp_path / "run"
+    r = runner.invoke(app, ["train", str(small_data), "--model", "gabor", "--iterations", "10", "--num-primitives",
+                            "120", "--backend", "cpu", "--antialias", "--out", str(run)])
+    assert r.exit_code == 0, r.output
+    assert json.loads((run / "config.json").read_text())["train"]["antialias"] is True
+    model = load_model(run / "model.pt")
+    assert model.antialias and model.raster_settings == ANTIALIASED
+    cam = Camera.look_at((0.0, -1.0, -3.0), (0.0, 0.0, 0.0), width=40, height=40).to(dtype=torch.float32)
+    bg = torch.zeros(3)
+    filtered = rasterize(model.surfels(cam), cam, backend="cpu", background=bg, settings=ANTIALIASED).rgb
+    plain = rasterize(model.surfels(cam), cam, backend="cpu", background=bg).rgb
+    shown = render_view(model, cam, (0.0, 0.0, 0.0), "cpu")
+    assert torch.equal(shown, filtered.clamp(0, 1)) and not torch.equal(shown, plain.clamp(0, 1))
+
+    r = runner.invoke(app, ["eval", str(run), "--scale", "0.5,0.25", "--backend", "cpu"])
+    assert r.exit_code == 0, r.output
+    assert "vs own full-size render" in r.output
+    scales = json.loads((run / "metrics.json").read_text())["scales"]
+    assert list(scales) == ["0.5", "0.25"]
+    assert scales["0.5"]["resolution"] == [24, 24] and scales["0.25"]["resolution"] == [12, 12]
+    for entry in scales.values():
+        assert math.isfinite(entry["psnr"]) and entry["consistency_psnr"] > 25, entry
+
+    for bad in ("2", "0", "x", ""):
+        r = runner.invoke(app, ["eval", str(run), "--scale", bad])
+        assert r.exit_code != 0 and "--scale" in r.output + str(r.exception), (bad, r.output)
+
+
+def test_a_crafted_antialias_entry_is_refused(tmp_path):
+    from splatzoo.errors import SplatzooError
+    from splatzoo.zoo import create_model, model_from_checkpoint
+
+    model = create_model("2dgs", torch.rand(20, 3), torch.rand(20, 3))
+    ck = model.checkpoint()
+    assert "antialias" not in ck and not model_from_checkpoint(ck).antialias  # older files load unchanged
+    model.antialias = True
+    assert model_from_checkpoint(model.checkpoint()).antialias
+    with pytest.raises(SplatzooError, match="antialias"):
+        model_from_checkpoint({**ck, "antialias": "yes"})

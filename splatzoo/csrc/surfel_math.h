@@ -195,6 +195,56 @@ SZ_HD void quat_rotmat(const S* q, S R[9], S qn[4], S& norm) {
     R[6] = S(2) * (x * z - w * y);         R[7] = S(2) * (y * z + w * x);         R[8] = S(1) - S(2) * (x * x + y * y);
 }
 
+// ---- anti-aliasing footprint (common.centre_footprint, common.FOOTPRINT_PAD, reference.LINEAR_LIMIT) --------------
+constexpr double FOOTPRINT_PAD = 0.05;     // culling boxes grow by this fraction of their size ...
+constexpr double FOOTPRINT_PAD_PX = 1.0;   // ... and this many pixels, times the tilt (they bound the support)
+constexpr double LINEAR_LIMIT = 0.2;       // pairs whose footprint sigma exceeds this fraction of the distance to
+                                           // the plane's vanishing line are culled
+
+// S = pixel_filter J J^T at the projected centre, where c = (0, 0, cz): J = [[A0, B0], [A1, B1]] / cz with
+// A = m2 x m3, B = m3 x m1, cz = C2 + cx A2 + cy B2, and the tilt 0..1 (how much J changes over the surfel). For
+// culling boxes only (the render takes J per pixel).
+template <class S>
+SZ_HD void centre_footprint(const Settings& st, const S* T9, const S* center, double s[3], double& tilt) {
+    const double m1[3] = {double(T9[0]), double(T9[1]), double(T9[2])};
+    const double m2[3] = {double(T9[3]), double(T9[4]), double(T9[5])};
+    const double m3[3] = {double(T9[6]), double(T9[7]), double(T9[8])};
+    const double A[3] = {m2[1] * m3[2] - m2[2] * m3[1], m2[2] * m3[0] - m2[0] * m3[2], m2[0] * m3[1] - m2[1] * m3[0]};
+    const double B[3] = {m3[1] * m1[2] - m3[2] * m1[1], m3[2] * m1[0] - m3[0] * m1[2], m3[0] * m1[1] - m3[1] * m1[0]};
+    const double C2 = m1[0] * m2[1] - m1[1] * m2[0];
+    const double cz = C2 + double(center[0]) * A[2] + double(center[1]) * B[2];
+    const double inv = 1.0 / (cz != 0.0 ? cz : 1e-30);
+    const double j00 = A[0] * inv, j01 = B[0] * inv, j10 = A[1] * inv, j11 = B[1] * inv;
+    s[0] = st.pixel_filter * (j00 * j00 + j01 * j01);
+    s[1] = st.pixel_filter * (j00 * j10 + j01 * j11);
+    s[2] = st.pixel_filter * (j10 * j10 + j11 * j11);
+    tilt = sqrt(st.pixel_filter) * sqrt(A[2] * A[2] + B[2] * B[2]) * (inv < 0 ? -inv : inv) / LINEAR_LIMIT;
+    tilt = tilt < 1.0 ? tilt : 1.0;
+}
+
+// Screen box (xmin, ymin, xmax, ymax) of the image of x^T (I + S)^-1 x <= r2 in the surfel's plane (S = 0: the
+// disc), from the dual conic Q = T diag(r2 (I + S), -1) T^T; +-big where it reaches the camera plane or S is not
+// finite (common._conic_box).
+template <class S>
+SZ_HD void conic_box(const S* T9, S r2, S s00, S s01, S s11, S big, S* b) {
+    const bool finite = s00 + s11 < S(1e12);  // false for NaN and inf too
+    const S e00 = finite ? S(1) + s00 : S(1), e01 = finite ? s01 : S(0), e11 = finite ? S(1) + s11 : S(1);
+    auto Q = [&](int i, int j) {
+        const S* a = T9 + 3 * i;
+        const S* c = T9 + 3 * j;
+        return r2 * (e00 * a[0] * c[0] + e01 * (a[0] * c[1] + a[1] * c[0]) + e11 * a[1] * c[1]) - a[2] * c[2];
+    };
+    const S q22 = Q(2, 2), q02 = Q(0, 2), q12 = Q(1, 2);
+    if (q22 < S(0) && finite) {  // entirely in front of the camera plane
+        const S cx = q02 / q22, cy = q12 / q22;
+        const S hx = sqrt(smax(q02 * q02 - Q(0, 0) * q22, S(0))) / sabs(q22);
+        const S hy = sqrt(smax(q12 * q12 - Q(1, 1) * q22, S(0))) / sabs(q22);
+        b[0] = cx - hx; b[1] = cy - hy; b[2] = cx + hx; b[3] = cy + hy;
+    } else {
+        b[0] = -big; b[1] = -big; b[2] = big; b[3] = big;
+    }
+}
+
 // T = [a | b | c] with a = K R_cam (s_u t_u), b = K R_cam (s_v t_v), c = K R_cam p + K t (T9 row-major: row i is
 // (a_i, b_i, c_i)); the projected centre c_xy / c_z, the camera depth c_z, the world normal t_w turned to face the
 // camera; and the exact screen box of the support (common.screen_boxes: the disc u^2 + v^2 <= 2 ln(255 o) as a
@@ -226,26 +276,24 @@ SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S*
     const S log_o = log(smax(o / S(st.alpha_min), S(1e-30)));
     const bool visible = cz > S(st.near) && log_o > S(0);
     const S r2 = smax(S(2) * log_o, S(0));
-    // Q = T diag(r2, r2, -1) T^T (the dual conic of the disc's image)
-    auto Q = [&](int i, int j) {
-        return r2 * (T9[3 * i] * T9[3 * j] + T9[3 * i + 1] * T9[3 * j + 1]) - T9[3 * i + 2] * T9[3 * j + 2];
-    };
-    const S q22 = Q(2, 2), q02 = Q(0, 2), q12 = Q(1, 2);
-    const bool bounded = q22 < S(0);  // the disc lies entirely in front of the camera plane
-    const S safe = bounded ? q22 : S(-1);
     const S big = S(double(cam.W > cam.H ? cam.W : cam.H) * 4 + 1e4);
     S b[4];
-    if (bounded) {
-        const S cx = q02 / safe, cy = q12 / safe;
-        const S hx = sqrt(smax(q02 * q02 - Q(0, 0) * q22, S(0))) / sabs(safe);
-        const S hy = sqrt(smax(q12 * q12 - Q(1, 1) * q22, S(0))) / sabs(safe);
-        b[0] = cx - hx; b[1] = cy - hy; b[2] = cx + hx; b[3] = cy + hy;
-    } else {
-        b[0] = -big; b[1] = -big; b[2] = big; b[3] = big;
-    }
-    if (st.pixel_filter > 0) {  // the footprint dilates the disc's image (common.footprint_pad)
-        const S pad = S(1.25) * sqrt(r2 * S(st.pixel_filter)) + S(0.5);
-        b[0] -= pad; b[1] -= pad; b[2] += pad; b[3] += pad;
+    conic_box(T9, r2, S(0), S(0), S(0), big, b);  // the disc's image
+    if (st.pixel_filter > 0) {
+        // no screen filter: the footprint-widened support, bounded as in common.screen_boxes: the conic of the
+        // centre's footprint and the disc grown by r footprint sigmas, intersected, then padded by the tilt
+        double s[3], tilt;
+        centre_footprint(st, T9, center, s, tilt);
+        S wide[4];
+        conic_box(T9, r2, S(s[0]), S(s[1]), S(s[2]), big, wide);
+        const S grow = sqrt(r2 * S(st.pixel_filter));
+        b[0] = smax(wide[0], b[0] - grow);
+        b[1] = smax(wide[1], b[1] - grow);
+        b[2] = smin(wide[2], b[2] + grow);
+        b[3] = smin(wide[3], b[3] + grow);
+        const S px = (S(FOOTPRINT_PAD) * (b[2] - b[0]) + S(FOOTPRINT_PAD_PX)) * S(tilt);
+        const S py = (S(FOOTPRINT_PAD) * (b[3] - b[1]) + S(FOOTPRINT_PAD_PX)) * S(tilt);
+        b[0] -= px; b[1] -= py; b[2] += px; b[3] += py;
     } else {
         const S rf = sqrt(smax(log_o, S(0)) / S(st.filter_inv_sq / 2));
         b[0] = nan_min(b[0], center[0] - rf);
@@ -434,6 +482,10 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     S s01 = rmul(f, radd(rmul(j00, j10), rmul(j01, j11)));
     S s11 = rmul(f, radd(rmul(j10, j10), rmul(j11, j11)));
     bool keep = radd(s00, s11) <= S(1.0 / (st.alpha_min * st.alpha_min));  // false for NaN and inf too
+    // the linearisation holds: the footprint is small next to the distance to the vanishing line c2 = 0
+    const S lc2 = rmul(S(LINEAR_LIMIT), c2);
+    bool linear = rmul(f, radd(rmul(g.A[2], g.A[2]), rmul(g.B[2], g.B[2]))) <= rmul(lc2, lc2);
+
     s00 = keep ? s00 : S(0);
     s01 = keep ? s01 : S(0);
     s11 = keep ? s11 : S(0);
@@ -446,6 +498,7 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     S gain = sqrt(idet);
     gain = hit ? gain : S(0);
     gain = keep ? gain : S(0);
+    gain = linear ? gain : S(0);  // one comparison per select: combined conditions become branches (no vectors)
     S ex = rmul(gain, sz_exp(rmul(S(-0.5), q)));
     S raw = rmul(g.o, ex);
     const S amax = S(st.alpha_max);

@@ -102,29 +102,28 @@ def screen_boxes(T, center_px, depth, opacities, cam: Camera, settings: RasterSe
     r^2 = 2 ln(o / alpha_min), together with the filter disc |d|^2 <= ln(o / alpha_min) / (filter_inv_sq / 2) around the
     projected centre. Bounding both exactly means the boxes only save work and never change a pixel.
     The disc's image is a conic; if the disc reaches the camera plane it is unbounded and we use the
-    whole image.
+    whole image. Anti-aliased, the support is the footprint-widened one (no screen filter), bounded as described in
+    the code; there the boxes also bound what the rasterizers shade (see FOOTPRINT_PAD).
     """
     n = T.shape[0]
     log_o = torch.log((opacities.clamp(0, 1) / settings.alpha_min).clamp_min(1e-30))
     visible = (depth > settings.near) & (log_o > 0)
     r2 = (2 * log_o).clamp_min(0)
-    # Dual conic Q = T diag(r^2, r^2, -1) T^T; the vertical tangent lines x solve Q00 - 2x Q02 + x^2 Q22 = 0.
-    D = torch.stack([r2, r2, -torch.ones_like(r2)], -1)
-    Q = torch.einsum("nik,nk,njk->nij", T, D, T)
-    q22 = Q[:, 2, 2]
-    bounded = q22 < 0  # disc entirely in front of the camera plane
-    safe = torch.where(bounded, q22, -torch.ones_like(q22))
-    cx, cy = Q[:, 0, 2] / safe, Q[:, 1, 2] / safe
-    hx = torch.sqrt((Q[:, 0, 2] ** 2 - Q[:, 0, 0] * q22).clamp_min(0)) / safe.abs()
-    hy = torch.sqrt((Q[:, 1, 2] ** 2 - Q[:, 1, 1] * q22).clamp_min(0)) / safe.abs()
     big = float(max(cam.width, cam.height)) * 4 + 1e4
     inf_box = torch.tensor([-big, -big, big, big], dtype=T.dtype, device=T.device).expand(n, 4)
-    disc = torch.stack([cx - hx, cy - hy, cx + hx, cy + hy], -1)
-    disc = torch.where(bounded[:, None], disc, inf_box)
+    zero = torch.zeros_like(r2)
+    disc = _conic_box(T, r2, zero, zero, zero, inf_box)
     if settings.antialiased:
-        # footprint-filtered: the support is the disc's image dilated by the footprint's own r-sigma disc
-        pad = footprint_pad(r2, settings)
-        boxes = torch.cat([disc[:, :2] - pad[:, None], disc[:, 2:] + pad[:, None]], -1)
+        # no screen filter: the support seen through the footprint, bounded two ways (both exact bounds for a surfel
+        # seen face on): the conic of x^T (I + S)^-1 x <= r^2 with the centre's footprint S, and the disc's image
+        # grown by r footprint sigmas; then padded for the footprint's change over a tilted surfel
+        s00, s01, s11, tilt = centre_footprint(T, center_px, settings)
+        wide = _conic_box(T, r2, s00, s01, s11, inf_box)
+        grown = torch.sqrt(r2 * settings.pixel_filter)[:, None]
+        grown = torch.cat([disc[:, :2] - grown, disc[:, 2:] + grown], -1)
+        support = torch.cat([torch.maximum(wide[:, :2], grown[:, :2]), torch.minimum(wide[:, 2:], grown[:, 2:])], -1)
+        pad = (FOOTPRINT_PAD * (support[:, 2:] - support[:, :2]) + FOOTPRINT_PAD_PX) * tilt[:, None]
+        boxes = torch.cat([support[:, :2] - pad, support[:, 2:] + pad], -1)
     else:
         rf = torch.sqrt(log_o.clamp_min(0) / (settings.filter_inv_sq / 2))
         filt = torch.cat([center_px - rf[:, None], center_px + rf[:, None]], -1)
@@ -137,15 +136,53 @@ def screen_boxes(T, center_px, depth, opacities, cam: Camera, settings: RasterSe
     return boxes, visible & on_screen
 
 
-def footprint_pad(r2: torch.Tensor, settings: RasterSettings) -> torch.Tensor:
-    """How far (pixels) the footprint filter spreads a surfel beyond the image of its support disc.
+# The footprint changes over a tilted surfel (J is taken per pixel); the box of the support seen with the centre's
+# footprint grows by this fraction of its size and this many pixels, times the tilt (centre_footprint). Exact for
+# a surfel seen face on; nearly edge on, the box may trim a faint fringe (alpha near alpha_min), the same in every
+# backend: the reference shades only inside the boxes. The same numbers are in csrc/surfel_math.h;
+# tests/test_antialias.py measures the trim.
+FOOTPRINT_PAD = 0.05
+FOOTPRINT_PAD_PX = 1.0
+# Anti-aliased: a pair is culled where the pixel footprint's standard deviation exceeds this fraction of the pixel's
+# distance to the surfel plane's vanishing line (there the footprint's linearisation fails and would leave a faint
+# fringe toward the horizon of large grazing surfels).
+LINEAR_LIMIT = 0.2
 
-    A pair is kept when o det(I + S)^-1/2 exp(-q/2) >= alpha_min, so q = x^T (I + S)^-1 x <= r^2 (det >= 1). As
-    q = min over x = a + b of |a|^2 + b^T S^-1 b, some a in the disc has |J^-1 b| <= r sqrt(pixel_filter): to first
-    order the pixel lies within r sqrt(pixel_filter) of the disc's image. The factor and the half pixel cover the
-    perspective's second-order term (the box is a cull test, never a cut: tests/test_antialias.py checks it).
-    """
-    return 1.25 * torch.sqrt(r2 * settings.pixel_filter) + 0.5
+
+def centre_footprint(T: torch.Tensor, center_px: torch.Tensor, settings: RasterSettings):
+    """The pixel footprint's covariance S = pixel_filter J J^T in the surfel's frame at its projected centre, per
+    surfel: (s00, s01, s11), and how much it changes over the surfel, 0..1 (tilt). There c = x A + y B + C =
+    (0, 0, c_z), so J = d(u, v)/d(pixel) = [[A0, B0], [A1, B1]] / c_z (A = m2 x m3, B = m3 x m1, C = m1 x m2). J
+    changes with c_z, which is affine in the pixel (gradient (A2, B2)): constant for a surfel seen face on (tilt 0);
+    tilt 1 at LINEAR_LIMIT footprints from the vanishing line, beyond which pairs are culled. Only for culling
+    boxes; the render takes J at every pixel."""
+    m1, m2, m3 = T[:, 0], T[:, 1], T[:, 2]
+    A, B, C = torch.linalg.cross(m2, m3), torch.linalg.cross(m3, m1), torch.linalg.cross(m1, m2)
+    cz = C[:, 2] + center_px[:, 0] * A[:, 2] + center_px[:, 1] * B[:, 2]
+    inv = 1 / torch.where(cz != 0, cz, torch.full_like(cz, 1e-30))
+    j00, j01, j10, j11 = A[:, 0] * inv, B[:, 0] * inv, A[:, 1] * inv, B[:, 1] * inv
+    f = settings.pixel_filter
+    tilt = (math.sqrt(f) * torch.sqrt(A[:, 2] ** 2 + B[:, 2] ** 2) * inv.abs() / LINEAR_LIMIT).clamp(max=1.0)
+    return f * (j00 * j00 + j01 * j01), f * (j00 * j10 + j01 * j11), f * (j10 * j10 + j11 * j11), tilt
+
+
+def _conic_box(T, r2, s00, s01, s11, inf_box):
+    """Screen box of the image of x^T (I + S)^-1 x <= r^2 in the surfel's plane (S = 0: the disc of radius r), from
+    the dual conic Q = T diag(r^2 (I + S), -1) T^T: the vertical tangent lines x solve Q00 - 2x Q02 + x^2 Q22 = 0.
+    The whole image (inf_box) where the region reaches the camera plane or S is not finite."""
+    finite = s00 + s11 < 1e12  # False for NaN and inf too
+    s00, s01, s11 = (torch.where(finite, t, torch.zeros_like(t)) for t in (s00, s01, s11))
+    D = torch.diag_embed(torch.stack([r2 * (1 + s00), r2 * (1 + s11), -torch.ones_like(r2)], -1))
+    D[:, 0, 1] = D[:, 1, 0] = r2 * s01
+    Q = torch.einsum("nik,nkl,njl->nij", T, D, T)
+    q22 = Q[:, 2, 2]
+    bounded = (q22 < 0) & finite  # entirely in front of the camera plane
+    safe = torch.where(bounded, q22, -torch.ones_like(q22))
+    cx, cy = Q[:, 0, 2] / safe, Q[:, 1, 2] / safe
+    hx = torch.sqrt((Q[:, 0, 2] ** 2 - Q[:, 0, 0] * q22).clamp_min(0)) / safe.abs()
+    hy = torch.sqrt((Q[:, 1, 2] ** 2 - Q[:, 1, 1] * q22).clamp_min(0)) / safe.abs()
+    box = torch.stack([cx - hx, cy - hy, cx + hx, cy + hy], -1)
+    return torch.where(bounded[:, None], box, inf_box)
 
 
 def ndc_depth(z: torch.Tensor, settings: RasterSettings = SETTINGS) -> torch.Tensor:

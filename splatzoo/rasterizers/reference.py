@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from ..types import Camera, RenderOutput, Surfels
-from .common import SETTINGS, Projected, RasterSettings, background_tensor, ndc_depth, project
+from .common import LINEAR_LIMIT, SETTINGS, Projected, RasterSettings, background_tensor, ndc_depth, project
 
 # (pixel, surfel, wave) triples evaluated at once; bounds memory with autograd to a few hundred MB.
 PAIR_BUDGET = 1 << 19
@@ -101,10 +101,17 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         inv = 1 / cz_safe
         jac = ((A[:, 0] - u * A[:, 2]) * inv, (B[:, 0] - u * B[:, 2]) * inv,
                (A[:, 1] - v * A[:, 2]) * inv, (B[:, 1] - v * B[:, 2]) * inv)
-        gain, q, (u, v), blur = footprint_filter(u, v, jac, st, hits)
+        # the footprint is linearised at the hit: not where the pixel is within a few footprints of the plane's
+        # vanishing line c_z = 0 (c_z is affine in the pixel, gradient (A_2, B_2))
+        linear = st.pixel_filter * (A[:, 2] ** 2 + B[:, 2] ** 2) <= (LINEAR_LIMIT * cz) ** 2
+        gain, q, (u, v), blur = footprint_filter(u, v, jac, st, hits & linear)
         z = m3[:, 0] * u + m3[:, 1] * v + m3[:, 2]
         alpha = torch.clamp(s.opacities[idx] * gain * torch.exp(-0.5 * q), max=st.alpha_max)
-        valid = hits & (gain > 0) & (alpha >= st.alpha_min) & (z >= st.near)
+        # the culling box bounds the support (common.FOOTPRINT_PAD): a pixel outside it is not shaded, as in the
+        # tile loops, even where a nearly edge-on surfel's footprint would leave a faint fringe beyond it
+        box = proj.boxes[idx]
+        inbox = (px >= box[:, 0]) & (px <= box[:, 2]) & (py >= box[:, 1]) & (py <= box[:, 3])
+        valid = hits & inbox & (gain > 0) & (alpha >= st.alpha_min) & (z >= st.near)
     else:
         rho3d = u * u + v * v
         d = torch.stack([px - proj.center_px[idx, 0], py - proj.center_px[idx, 1]], -1)  # [P,n,2]
