@@ -24,7 +24,7 @@ step() {  # step NAME COMMAND...: run, log to $OUT/NAME.log, record pass/fail
 
 step env bash -c "nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; $PY -c 'import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name())'; nvcc --version | tail -1"
 step build $PY -c "from splatzoo.rasterizers import native; native.load('cuda'); native.load('cpu'); print('built')"
-step tests $PY -m pytest -q -p no:cacheprovider tests/test_native.py tests/test_reference.py -k "cuda and not emulated" -rs
+step tests $PY -m pytest -q -p no:cacheprovider tests/test_native.py tests/test_reference.py tests/test_antialias.py -k "cuda and not emulated" -rs
 DATA=${1:-}
 if [ -z "$DATA" ] && $PY -c "import open3d" 2>/dev/null; then
   DATA="$OUT/data-sweater"
@@ -37,7 +37,7 @@ else
   STATUS[train_resume]="not run: no DATA and no open3d to make one"
 fi
 step bench $PY benchmarks/bench_rasterizer.py --backends cuda --json "$OUT/bench.json"
-step bench_gpu $PY benchmarks/bench_rasterizer.py --gpu --backends cuda --json "$OUT/bench_gpu.json"
+step bench_gpu $PY benchmarks/bench_rasterizer.py --gpu --backends cuda --antialias off,on --json "$OUT/bench_gpu.json"
 
 {
   echo "gpu-check $(date -u +%Y-%m-%dT%H:%MZ) on $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)"

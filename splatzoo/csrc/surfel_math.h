@@ -428,19 +428,45 @@ template <class S> SZ_HD S rmul(S a, S b) { return a * b; }
 template <class S> SZ_HD S radd(S a, S b) { return a + b; }
 #endif
 
-// Branch-free so that a loop over pixels vectorises.
+// The pixel's ray against the surfel's plane: d = pixel - centre, c = h_x x h_y, whether the ray hits the plane and
+// inv = 1 / c2 where it does (else 0). Branch-free, as everything a pixel loop calls, so that the loop vectorises.
 template <class S>
-SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
-    S dx = radd(x, -g.cx), dy = radd(y, -g.cy);
-    S c0 = radd(radd(rmul(dx, g.A[0]), rmul(dy, g.B[0])), g.C[0]);
-    S c1 = radd(radd(rmul(dx, g.A[1]), rmul(dy, g.B[1])), g.C[1]);
-    S c2 = radd(radd(rmul(dx, g.A[2]), rmul(dy, g.B[2])), g.C[2]);
+struct PixelRay {
+    S dx, dy, c0, c1, c2, inv;
+    bool hit;
+};
+template <class S>
+SZ_HD PixelRay<S> pixel_ray(const Settings& st, const Geom<S>& g, S x, S y) {
+    PixelRay<S> r;
+    r.dx = radd(x, -g.cx);
+    r.dy = radd(y, -g.cy);
+    r.c0 = radd(radd(rmul(r.dx, g.A[0]), rmul(r.dy, g.B[0])), g.C[0]);
+    r.c1 = radd(radd(rmul(r.dx, g.A[1]), rmul(r.dy, g.B[1])), g.C[1]);
+    r.c2 = radd(radd(rmul(r.dx, g.A[2]), rmul(r.dy, g.B[2])), g.C[2]);
     // reference: |cz| > parallel_eps * max(|cx|, |cy|) and cz != 0 (a ray almost parallel to the plane misses
     // it); the first test already fails for cz == 0. Each select below depends on one comparison only: GCC turns
     // selects on combined conditions into branches, and the pixel loop stops vectorising.
-    bool hit = sabs(c2) > rmul(S(st.parallel_eps), smax(sabs(c0), sabs(c1)));
-    S inv = S(1) / (hit ? c2 : S(1));  // a division inside a select would not be speculated (vectorised)
-    inv = hit ? inv : S(0);
+    r.hit = sabs(r.c2) > rmul(S(st.parallel_eps), smax(sabs(r.c0), sabs(r.c1)));
+    S inv = S(1) / (r.hit ? r.c2 : S(1));  // a division inside a select would not be speculated (vectorised)
+    r.inv = r.hit ? inv : S(0);
+    return r;
+}
+
+// The blended alpha of o times the falloff (raw) at depth z: clamped at alpha_max, 0 below alpha_min or nearer
+// than the near plane.
+template <class S>
+SZ_HD S pair_alpha(const Settings& st, S raw, S z) {
+    const S amax = S(st.alpha_max);
+    S a = raw < amax ? raw : amax;
+    a = a >= S(st.alpha_min) ? a : S(0);
+    return z >= S(st.near) ? a : S(0);
+}
+
+template <class S>
+SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
+    const PixelRay<S> ray = pixel_ray(st, g, x, y);
+    const S dx = ray.dx, dy = ray.dy, c0 = ray.c0, c1 = ray.c1, c2 = ray.c2, inv = ray.inv;
+    const bool hit = ray.hit;
     S uu = rmul(c0, inv), vv = rmul(c1, inv);
     S rho3 = hit ? radd(rmul(uu, uu), rmul(vv, vv)) : S(INFINITY);
     S rho2 = rmul(S(st.filter_inv_sq), radd(rmul(dx, dx), rmul(dy, dy)));
@@ -451,12 +477,9 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
     S z = use3 ? radd(radd(rmul(g.m3[0], u), rmul(g.m3[1], v)), g.m3[2]) : g.zc;
     S ex = sz_exp(rmul(S(-0.5), rho));
     S raw = rmul(g.o, ex);
-    const S amax = S(st.alpha_max);
-    S a = raw < amax ? raw : amax;
-    a = a >= S(st.alpha_min) ? a : S(0);
     e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
     e.u = u; e.v = v; e.z = z; e.ex = ex; e.raw = raw;
-    e.alpha = z >= S(st.near) ? a : S(0);
+    e.alpha = pair_alpha(st, raw, z);
     e.use3 = use3;
 }
 
@@ -467,13 +490,9 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
 // Pairs with tr S > 1 / alpha_min^2 are culled (their gain alone is below alpha_min). Branch-free.
 template <class S>
 SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
-    S dx = radd(x, -g.cx), dy = radd(y, -g.cy);
-    S c0 = radd(radd(rmul(dx, g.A[0]), rmul(dy, g.B[0])), g.C[0]);
-    S c1 = radd(radd(rmul(dx, g.A[1]), rmul(dy, g.B[1])), g.C[1]);
-    S c2 = radd(radd(rmul(dx, g.A[2]), rmul(dy, g.B[2])), g.C[2]);
-    bool hit = sabs(c2) > rmul(S(st.parallel_eps), smax(sabs(c0), sabs(c1)));
-    S inv = S(1) / (hit ? c2 : S(1));
-    inv = hit ? inv : S(0);
+    const PixelRay<S> ray = pixel_ray(st, g, x, y);
+    const S dx = ray.dx, dy = ray.dy, c0 = ray.c0, c1 = ray.c1, c2 = ray.c2, inv = ray.inv;
+    const bool hit = ray.hit;
     S xu = rmul(c0, inv), xv = rmul(c1, inv);
     S j00 = rmul(radd(g.A[0], -rmul(xu, g.A[2])), inv), j01 = rmul(radd(g.B[0], -rmul(xu, g.B[2])), inv);
     S j10 = rmul(radd(g.A[1], -rmul(xv, g.A[2])), inv), j11 = rmul(radd(g.B[1], -rmul(xv, g.B[2])), inv);
@@ -501,12 +520,9 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     gain = linear ? gain : S(0);  // one comparison per select: combined conditions become branches (no vectors)
     S ex = rmul(gain, sz_exp(rmul(S(-0.5), q)));
     S raw = rmul(g.o, ex);
-    const S amax = S(st.alpha_max);
-    S a = raw < amax ? raw : amax;
-    a = a >= S(st.alpha_min) ? a : S(0);
     e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
     e.u = mu; e.v = mv; e.z = z; e.ex = ex; e.raw = raw;
-    e.alpha = z >= S(st.near) ? a : S(0);
+    e.alpha = pair_alpha(st, raw, z);
     e.use3 = true;
     e.xu = xu; e.xv = xv; e.j00 = j00; e.j01 = j01; e.j10 = j10; e.j11 = j11;
     e.p00 = p00; e.p01 = p01; e.p11 = p11; e.det = det;
