@@ -647,7 +647,7 @@ def _train_launched(out: Run, world: int, data, model, model_options, config, sc
             return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
                                evaluate_at_end=evaluate_at_end, stop_after=stop_after, distributed=True)
     finally:
-        dist.destroy_process_group()
+        _leave_process_group(dist)
 
 
 def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, resume: bool, *, progress: bool,
@@ -732,9 +732,24 @@ def _rank_main(rank: int, world: int, port: int, run_path: str, scene, model: st
         print(f"error (rank {rank}): {e}", file=sys.stderr, flush=True)
         code = 2
     finally:
-        dist.destroy_process_group()
+        _leave_process_group(dist)
     if code:
         sys.exit(code)
+
+
+def _leave_process_group(dist) -> None:
+    """Every rank waits for the others before tearing the group down: a rank that destroyed it (rank 0 with it the
+    rendezvous store) while another still used it aborted that rank now and then (gloo: std::terminate)."""
+    from datetime import timedelta
+
+    try:
+        if dist.get_backend() == "gloo":
+            dist.monitored_barrier(timeout=timedelta(seconds=60))
+        else:
+            dist.barrier()
+    except Exception:  # a rank that is gone already: nothing to wait for
+        pass
+    dist.destroy_process_group()
 
 
 def _truncate_log(run: Run, iteration: int) -> None:
