@@ -113,22 +113,23 @@ def evaluate_scales(model, scene, scales, *, backend: str = "auto", lpips_net: s
 
     backend = resolve_backend(backend, _device(model))
     views = scene.test or scene.train
-    out = {}
-    for scale in scales:
-        ps, ss, ls, cs = [], [], [], []
-        for v in views:
+    scores = {scale: {"psnr": [], "ssim": [], "lpips": [], "consistency_psnr": []} for scale in scales}
+    sizes = {}
+    for v in views:  # each view's image and full-size render once, for every scale
+        image, full = v.image_float(), render_view(model, v.camera, scene.background, backend)
+        for scale in scales:
             cam = v.camera.scaled(scale)
+            sizes[scale] = [cam.width, cam.height]
             small = render_view(model, cam, scene.background, backend)
-            gt = area_resize(v.image_float(), cam.width, cam.height)
-            full = area_resize(render_view(model, v.camera, scene.background, backend), cam.width, cam.height)
-            ps.append(psnr(small, gt))
-            ss.append(ssim(small, gt))
-            ls.append(lpips(small, gt, net=lpips_net, convention=lpips_convention) if min(gt.shape[:2]) >= 32
-                      else float("nan"))
-            cs.append(psnr(small, full))
-        out[f"{scale:g}"] = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "lpips": float(np.mean(ls)),
-                             "consistency_psnr": float(np.mean(cs)), "resolution": [cam.width, cam.height]}
-    return out
+            gt = area_resize(image, cam.width, cam.height)
+            r = scores[scale]
+            r["psnr"].append(psnr(small, gt))
+            r["ssim"].append(ssim(small, gt))
+            r["lpips"].append(lpips(small, gt, net=lpips_net, convention=lpips_convention)
+                              if min(gt.shape[:2]) >= 32 else float("nan"))
+            r["consistency_psnr"].append(psnr(small, area_resize(full, cam.width, cam.height)))
+    return {f"{scale:g}": {**{k: float(np.mean(x)) for k, x in scores[scale].items()}, "resolution": sizes[scale]}
+            for scale in scales}
 
 
 def scales_table(m: dict) -> str:

@@ -178,8 +178,9 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                         const int p = r * TILE + c;
                         const S a = sc.alpha[p];
                         if (a == S(0) || px[p].done) continue;
-                        S col[3], pre[3];
-                        const S blur[3] = {sc.blur[0][p], sc.blur[1][p], sc.blur[2][p]};
+                        S col[3], pre[3], blur[3];
+                        if (filtered)
+                            for (int b = 0; b < 3; ++b) blur[b] = sc.blur[b][p];
                         wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre,
                                    filtered ? blur : nullptr);
                         blend_forward(s.st, px[p], a, sc.z[p], col, sf.normal, rel);

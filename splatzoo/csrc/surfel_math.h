@@ -195,7 +195,7 @@ SZ_HD void quat_rotmat(const S* q, S R[9], S qn[4], S& norm) {
     R[6] = S(2) * (x * z - w * y);         R[7] = S(2) * (y * z + w * x);         R[8] = S(1) - S(2) * (x * x + y * y);
 }
 
-// ---- anti-aliasing footprint (common.centre_footprint, common.FOOTPRINT_PAD, reference.LINEAR_LIMIT) --------------
+// ---- anti-aliasing footprint (common.centre_footprint, common.FOOTPRINT_PAD, common.LINEAR_LIMIT) ------------
 constexpr double FOOTPRINT_PAD = 0.05;     // culling boxes grow by this fraction of their size ...
 constexpr double FOOTPRINT_PAD_PX = 1.0;   // ... and this many pixels, times the tilt (they bound the support)
 constexpr double LINEAR_LIMIT = 0.2;       // pairs whose footprint sigma exceeds this fraction of the distance to
@@ -504,7 +504,6 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     // the linearisation holds: the footprint is small next to the distance to the vanishing line c2 = 0
     const S lc2 = rmul(S(LINEAR_LIMIT), c2);
     bool linear = rmul(f, radd(rmul(g.A[2], g.A[2]), rmul(g.B[2], g.B[2]))) <= rmul(lc2, lc2);
-
     s00 = keep ? s00 : S(0);
     s01 = keep ? s01 : S(0);
     s11 = keep ? s11 : S(0);

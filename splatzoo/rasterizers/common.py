@@ -54,7 +54,7 @@ class RasterSettings:
 
 SETTINGS = RasterSettings()
 # The pixel footprint of anti-aliased rendering: a Gaussian with the variance of a one-pixel box (1/12) rounded up,
-# as Mip-Splatting's screen filter; see footprint_filter below.
+# as Mip-Splatting's screen filter; see reference.footprint_filter.
 PIXEL_FILTER = 0.1
 ANTIALIASED = RasterSettings(pixel_filter=PIXEL_FILTER)
 

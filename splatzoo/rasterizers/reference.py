@@ -185,7 +185,7 @@ def footprint_filter(u, v, jac, st: RasterSettings, hits):
 
 def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None) -> torch.Tensor:
     """c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)) for every pair -> [P,n,3]. g_k = 1, or with
-    blur = (b00, b01, b11) (the footprint's covariance in the surfel's frame) exp(-k_k^T b k_k / 2)."""
+    blur = (b00, b01, b11) (the colour's blur I - P, footprint_filter) exp(-k_k^T b k_k / 2)."""
     base = s.base_color[idx]  # [n,3]
     if s.num_waves == 0:
         return torch.clamp(base.expand(u.shape[0], -1, -1), min=0)
