@@ -8,7 +8,8 @@ One vertex per primitive, float32 properties, little endian:
   opacity                      logit
   scale_0, scale_1             log sigma (2DGS: two scales)
   rot_0..3                     quaternion (w, x, y, z), unnormalised as trained
-  gabor_color_a_0..2, gabor_color_b_0..2, gabor_weight_*, gabor_freq_*, gabor_phase_*   Gabor-family waves
+  gabor_color_base_0..2, gabor_color_diff_0..2 (or, for --colors paper, gabor_color_a_0..2, gabor_color_b_0..2),
+  gabor_weight_*, gabor_freq_*, gabor_phase_*   Gabor-family colour and waves
   <param>_<i>                  any other per-primitive parameter of a plugin, flattened row-major
 Header comments name the splatzoo model and its config (`comment splatzoo model gabor`,
 `comment splatzoo config {"n_waves": 4}`), so `load_ply` rebuilds the same model. Parameters are stored exactly
@@ -35,7 +36,8 @@ FORMAT_VERSION = 1
 # parameter name -> property prefix (or explicit names) of the standard layouts
 _FIXED = {"means": ["x", "y", "z"], "logit_opacity": ["opacity"]}
 _PREFIX = {"log_scales": "scale_", "quats": "rot_", "sh_dc": "f_dc_", "sh_rest": "f_rest_",
-           "color_a": "gabor_color_a_", "color_b": "gabor_color_b_", "wave_weights": "gabor_weight_",
+           "color_a": "gabor_color_a_", "color_b": "gabor_color_b_", "color_base": "gabor_color_base_",
+           "color_diff": "gabor_color_diff_", "wave_weights": "gabor_weight_",
            "wave_freqs": "gabor_freq_", "wave_phases": "gabor_phase_"}
 _CHANNEL_MAJOR = {"sh_rest"}          # 3DGS stores SH bands transposed: [N, 3, bands]
 _DERIVED = ("nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2")  # written for viewers, recomputed on load
@@ -348,12 +350,13 @@ def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dic
 def load_ply(path):
     """Rebuild the model written by `save_ply` (or a 2DGS point_cloud.ply, as a `2dgs` model). The header's model
     and config decide what is read, so each is checked against what the file holds before it sizes anything."""
-    from .zoo import create_model
+    from .zoo import create_model, stored_config
 
     arr, comments = read_ply_vertices(path)
     names = list(arr.dtype.names)
     present = set(names)
     model_name, config = _header_model(path, comments, names)
+    config = stored_config(model_name, config)
     try:
         model = create_model(model_name, **config)   # no primitives yet: it tells each parameter's trailing shape
     except SplatzooError as e:  # unknown model, bad option: the registry's or the config's own words, located

@@ -446,7 +446,7 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
     """Check a request against the run folder (its lock held) and make the run ready to train:
     (scene, model, model_config, cfg, state). `world`: the processes a launcher started (1: none)."""
     from .data import load_scene
-    from .zoo import make_config
+    from .zoo import make_config, stored_config
 
     if out.status == "foreign":
         raise SplatzooError(f"{out.path} exists and is not a splatzoo run folder; choose a new or empty --out")
@@ -472,7 +472,7 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
             raise SplatzooError(f"--resume continues {out.path} with its own settings, but these differ: "
                                 + "; ".join(conflicts) + ". Resume without them, or train into another --out")
         model = record["model"]
-        model_config = make_config(model, **record["model_config"])
+        model_config = make_config(model, **stored_config(model, record["model_config"]))
         cfg = out.train_config(record)
         if config is not None:  # operational fields (backend, checkpoint cadence) may change on resume
             stated = config if isinstance(config, dict) else dataclasses.asdict(config)

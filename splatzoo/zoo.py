@@ -105,6 +105,19 @@ def save_model(model: SplatModel, path) -> None:
 _CONFIG_TYPES = {bool: (bool,), int: (int,), float: (int, float), str: (str,)}
 
 
+def stored_config(name: str, config: dict) -> dict:
+    """A config as a file recorded it (checkpoint, PLY header, run record), with the options added since filled in
+    with what the file meant: a config class lists them in `stored_defaults` (where that differs from today's
+    default). Anything that is not a model name and a dict is returned as it is, for the caller to refuse."""
+    try:
+        spec = MODELS.get(name) if isinstance(name, str) else None
+    except SplatzooError:
+        return config
+    if spec is None or not isinstance(config, dict):
+        return config
+    return {**getattr(spec.config_cls, "stored_defaults", {}), **config}
+
+
 def _check_config(name: str, config_cls, config: dict, fail) -> None:
     """Checkpoint configs were written by dataclasses.asdict: every value already has its field's type."""
     known = {f.name for f in dataclasses.fields(config_cls)}
@@ -166,6 +179,7 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     name, config, state = ckpt["model"], ckpt["config"], ckpt["state"]
     if not isinstance(name, str) or not isinstance(config, dict) or not isinstance(state, dict):
         raise fail("not a splatzoo model: 'model' must be a name, 'config' and 'state' dicts")
+    config = stored_config(name, config)
     antialias = ckpt.get("antialias", False)
     if not isinstance(antialias, bool):
         raise fail(f"'antialias' must be true or false, found {_brief(antialias)}")

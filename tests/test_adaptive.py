@@ -14,6 +14,9 @@ from splatzoo.training.densify import DensifyStats, densify_and_prune
 
 CAM = Camera.look_at([0.0, 0.0, -3.5], [0.0, 0.0, 0.0], width=32, height=32, fov_deg=45.0)
 BACKENDS = ["reference", "cpu"]
+COLOR_PARAMS = ["residual", "paper"]
+# per parametrisation: the base colour, the colour the waves scale, buffers that only waved surfels store
+COLOR_NAMES = {"residual": ("color_base", "color_diff", ()), "paper": ("color_a", "color_b", ("folded_weights",))}
 
 
 def point_cloud(n=64, seed=0):
@@ -27,7 +30,11 @@ def adaptive_model(threshold=0.01, **kw):
     m = splatzoo.create_model("gabor", pts, cols, seed=1, prune_waves=threshold, **kw)
     with torch.no_grad():
         m.logit_opacity.fill_(1.0)
-        m.color_b.uniform_(0, 1, generator=torch.Generator().manual_seed(3))  # give the waves real amplitude
+        g = torch.Generator().manual_seed(3)  # give the waves real amplitude
+        if m.residual:
+            m.color_diff.uniform_(-0.5, 0.5, generator=g)
+        else:
+            m.color_b.uniform_(0, 1, generator=g)
     return m
 
 
@@ -111,8 +118,9 @@ def mean_colors(s: Surfels) -> torch.Tensor:
     return s.base_color + (s.wave_amplitudes * m[..., None]).sum(1)
 
 
-def test_pruning_keeps_each_surfels_mean_colour():
-    m = adaptive_model(threshold=0.05)
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
+def test_pruning_keeps_each_surfels_mean_colour(color_param):
+    m = adaptive_model(threshold=0.05, color_param=color_param)
     with torch.no_grad():
         m.wave_freqs.mul_(0.3)  # low frequencies: waves whose mean is far from zero
         m.wave_weights.mul_(10)
@@ -126,8 +134,10 @@ def test_pruning_keeps_each_surfels_mean_colour():
     torch.testing.assert_close(mean_colors(m.surfels(CAM)), before, atol=1e-6, rtol=0)
 
 
-def test_waveless_surfels_store_and_train_as_2dgs_surfels(tmp_path):
-    m = adaptive_model()
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
+def test_waveless_surfels_store_and_train_as_2dgs_surfels(tmp_path, color_param):
+    base, diff, extra = COLOR_NAMES[color_param]
+    m = adaptive_model(color_param=color_param)
     opt = torch.optim.Adam(m.optim_groups(1.0), lr=0.01, eps=1e-15)
     for _ in range(2):  # moments everywhere
         opt.zero_grad()
@@ -138,21 +148,24 @@ def test_waveless_surfels_store_and_train_as_2dgs_surfels(tmp_path):
     m.prune_waves(0.01, opt)
     empty = m.wave_counts == 0
     assert empty[:16].all() and not empty.all()
-    assert m.color_b[empty].eq(0).all() and m.folded_weights[empty].eq(0).all()
-    assert opt.state[m.color_b]["exp_avg"][empty].eq(0).all()
-    for _ in range(3):  # a wave-less surfel's color_b gets no gradient and stays zero
+    for name in (diff,) + extra:
+        assert getattr(m, name)[empty].eq(0).all(), name
+    assert opt.state[getattr(m, diff)]["exp_avg"][empty].eq(0).all()
+    for _ in range(3):  # a wave-less surfel's wave colour gets no gradient and stays zero
         opt.zero_grad()
         (rasterize(m.surfels(CAM), CAM, backend="cpu").rgb - 0.5).square().sum().backward()
-        assert m.color_b.grad[empty].eq(0).all()
-        assert m.color_a.grad[empty].abs().sum() > 0
+        assert getattr(m, diff).grad[empty].eq(0).all()
+        assert getattr(m, base).grad[empty].abs().sum() > 0
         opt.step()
-    assert m.color_b[empty].eq(0).all() and m.folded_weights[empty].eq(0).all()
+    for name in (diff,) + extra:
+        assert getattr(m, name)[empty].eq(0).all(), name
     state = m.checkpoint()["state"]
-    assert state["color_b"].shape[0] == state["folded_weights"].shape[0] == int((~empty).sum())
-    assert state["color_a"].shape[0] == m.num_primitives and state["wave_mask"].dtype == torch.uint8
+    for name in (diff,) + extra:  # only waved surfels store them
+        assert state[name].shape[0] == int((~empty).sum()), name
+    assert state[base].shape[0] == m.num_primitives and state["wave_mask"].dtype == torch.uint8
     splatzoo.save_model(m, tmp_path / "m.pt")
     back = splatzoo.load_model(tmp_path / "m.pt")
-    for name, p in list(m.named_parameters()) + [("folded_weights", m.folded_weights)]:
+    for name, p in list(m.named_parameters()) + [(name, getattr(m, name)) for name in extra]:
         assert torch.equal(p, getattr(back, name)), name
 
 
@@ -171,11 +184,12 @@ def test_surfel_with_no_waves_is_a_2dgs_surfel():
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_packed_checkpoint_round_trip_and_size(tmp_path, backend):
-    full = adaptive_model()
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
+def test_packed_checkpoint_round_trip_and_size(tmp_path, backend, color_param):
+    full = adaptive_model(color_param=color_param)
     full_path = tmp_path / "full.pt"
     splatzoo.save_model(full, full_path)
-    m = adaptive_model()
+    m = adaptive_model(color_param=color_param)
     with torch.no_grad():
         m.wave_weights[::2, 1:] = 0.0
         m.wave_weights[1::4] = 0.0
@@ -266,11 +280,12 @@ def test_adaptive_sh_gabor_is_conformant(tmp_path):
 
 
 @pytest.mark.parametrize("weights", ["some", "none"])
-def test_pruned_model_ply_round_trip(tmp_path, weights):
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
+def test_pruned_model_ply_round_trip(tmp_path, weights, color_param):
     """The PLY holds the trimmed width (down to no wave columns at all); load_ply reads the width from the file."""
     from splatzoo.export import load_ply, save_ply
 
-    m = adaptive_model()
+    m = adaptive_model(color_param=color_param)
     with torch.no_grad():
         m.wave_weights[:, 2:] = 0.0
         m.wave_weights[::3, :] = 0.0
@@ -284,10 +299,11 @@ def test_pruned_model_ply_round_trip(tmp_path, weights):
     assert torch.equal(render(back).rgb, render(m).rgb)
 
 
-def test_adaptive_gabor_is_gabor_until_the_first_pruning():
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
+def test_adaptive_gabor_is_gabor_until_the_first_pruning(color_param):
     pts, cols = point_cloud()
-    plain = splatzoo.create_model("gabor", pts, cols, seed=1)
-    adaptive = splatzoo.create_model("gabor", pts, cols, seed=1, prune_waves=0.01)
+    plain = splatzoo.create_model("gabor", pts, cols, seed=1, color_param=color_param)
+    adaptive = splatzoo.create_model("gabor", pts, cols, seed=1, prune_waves=0.01, color_param=color_param)
     assert dict(plain.named_parameters()).keys() == dict(adaptive.named_parameters()).keys()  # nothing extra to train
     for name, p in plain.named_parameters():
         assert torch.equal(p, getattr(adaptive, name)), name

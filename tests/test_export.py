@@ -74,12 +74,14 @@ def test_2dgs_layout_is_what_2dgs_tools_read(tmp_path):
     assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-5)
 
 
-def test_gabor_layout_names_its_waves(tmp_path):
-    model = random_model("gabor", n=20, n_waves=3)
+@pytest.mark.parametrize("color_param,colors", [("residual", ("gabor_color_base_", "gabor_color_diff_")),
+                                                ("paper", ("gabor_color_a_", "gabor_color_b_"))])
+def test_gabor_layout_names_its_waves(tmp_path, color_param, colors):
+    model = random_model("gabor", n=20, n_waves=3, color_param=color_param)
     arr, comments = read_ply_vertices(save_ply(model, tmp_path / "g.ply"))
     names = list(arr.dtype.names)
     assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-    for prefix, count in (("gabor_color_a_", 3), ("gabor_color_b_", 3), ("gabor_weight_", 3), ("gabor_freq_", 3),
+    for prefix, count in ((colors[0], 3), (colors[1], 3), ("gabor_weight_", 3), ("gabor_freq_", 3),
                           ("gabor_phase_", 3)):
         assert [n for n in names if n.startswith(prefix)] == [f"{prefix}{i}" for i in range(count)]
     assert {"opacity", "scale_0", "scale_1", "rot_3"} <= set(names)
@@ -90,6 +92,19 @@ def test_gabor_layout_names_its_waves(tmp_path):
     # f_dc previews the mean colour (for 2DGS viewers); it is not read back
     c0 = model.surfels(CAM).base_color.detach().clamp(0, 1).numpy()
     assert np.allclose(arr["f_dc_0"] * 0.28209479177387814 + 0.5, c0[:, 0], atol=1e-5)
+
+
+def test_gabor_ply_from_before_color_param_loads_as_the_paper_model(tmp_path):
+    """A config comment without color_param was written before the option existed: the paper's parametrisation."""
+    from splatzoo.export import load_ply
+
+    model = random_model("gabor", n=30, n_waves=2, color_param="paper")
+    data = save_ply(model, tmp_path / "m.ply").read_bytes()
+    old = data.replace(b'"color_param":"paper",', b"")
+    assert old != data
+    (tmp_path / "old.ply").write_bytes(old)
+    back = load_ply(tmp_path / "old.ply")
+    assert back.config.color_param == "paper" and max_render_diff(model, back) == 0
 
 
 def test_plain_2dgs_ply_without_splatzoo_comments_loads(tmp_path):

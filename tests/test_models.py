@@ -45,10 +45,28 @@ def test_model_conformance(name, tmp_path):
         assert torch.equal(v, getattr(b, k)), k
 
 
-def test_gabor_maps_to_the_wave_bank():
-    """c0 = (sum w)(cA + cB)/2, a_i = w_i (cA - cB)/2, k_i = 2 pi f_i (cos i pi/N, sin i pi/N)."""
+def test_gabor_residual_maps_to_the_wave_bank():
+    """The default: c0 = color_base, a_i = w_i d (d = color_diff); it starts as the 2DGS surfel with the release's
+    waves around it (d = half the point colour, w = 0.1 U(0,1))."""
     pts, cols = point_cloud(5)
     m = splatzoo.create_model("gabor", pts, cols, n_waves=4)
+    assert m.config.color_param == "residual"
+    s = m.surfels(CAM)
+    assert torch.equal(s.base_color, cols) and torch.equal(m.color_diff, cols / 2)
+    w = m.wave_weights
+    assert torch.equal(s.wave_amplitudes, w[..., None] * m.color_diff[:, None])
+    assert w.min() >= 0 and w.max() <= 0.1 and w.std() > 0.01
+    groups = {g["name"]: g["lr"] for g in m.optim_groups(1.0)}
+    two = {g["name"]: g["lr"] for g in splatzoo.create_model("2dgs", pts, cols).optim_groups(1.0)}
+    assert groups["color_base"] == pytest.approx(two["sh_dc"] * 0.28209479177387814)  # 2DGS's pace, colour units
+    with pytest.raises(ShapeError, match="color_param=paper"):
+        splatzoo.create_model("gabor", init="surfel")
+
+
+def test_gabor_paper_maps_to_the_wave_bank():
+    """c0 = (sum w)(cA + cB)/2, a_i = w_i (cA - cB)/2, k_i = 2 pi f_i (cos i pi/N, sin i pi/N)."""
+    pts, cols = point_cloud(5)
+    m = splatzoo.create_model("gabor", pts, cols, n_waves=4, color_param="paper")
     s = m.surfels(CAM)
     w, f = m.wave_weights, m.wave_freqs
     assert torch.allclose(s.base_color, w.sum(1, keepdim=True) * (m.color_a + m.color_b) / 2)
@@ -122,9 +140,9 @@ def test_gabor_surfel_init_starts_as_the_2dgs_surfel():
     torch.manual_seed(0)
     pts, cols = torch.randn(300, 3), torch.rand(300, 3)
     cam = splatzoo.Camera.look_at([0, 0, -4], [0, 0, 0], width=32, height=32)
-    gabor = splatzoo.create_model("gabor", pts, cols, n_waves=4, init="surfel")
+    gabor = splatzoo.create_model("gabor", pts, cols, n_waves=4, color_param="paper", init="surfel")
     s = gabor.surfels(cam)
     assert torch.allclose(s.base_color, cols, atol=1e-6)
     assert s.wave_amplitudes.abs().max() <= INIT_OFFSET / 4 + 1e-7 and s.wave_amplitudes.abs().max() > 0
-    paper = splatzoo.create_model("gabor", pts, cols, n_waves=4).surfels(cam)
+    paper = splatzoo.create_model("gabor", pts, cols, n_waves=4, color_param="paper").surfels(cam)
     assert paper.base_color.max() < 0.25  # the release's dark start: (sum w)(cA + cB)/2 with sum w ~ 0.2

@@ -103,7 +103,7 @@ def _damaged(tmp_path, edit):
     (lambda c: c["state"].update(bonus=torch.zeros(12)), r"unexpected bonus"),
     (lambda c: c["config"].update(sh_degree=1), r"lacks parameter\(s\) sh_rest"),
     (lambda c: c["state"]["means"].__setitem__((3, 1), float("nan")), r"means has 1 non-finite \(NaN or inf\)"),
-    (lambda c: c["state"]["color_a"].__setitem__((0, 0), float("inf")), r"color_a has 1 non-finite"),
+    (lambda c: c["state"]["color_base"].__setitem__((0, 0), float("inf")), r"color_base has 1 non-finite"),
     (lambda c: c["state"].update(means=torch.zeros(11, 3)), r"disagree on the number of primitives.*means: 11"),
     (lambda c: c["state"].update(quats=torch.zeros(12, 3)), r"quats has shape \[12, 3\].*expects \[N, 4\]"),
     (lambda c: c["state"].update(means=torch.zeros(12, 3, dtype=torch.int32)), r"means holds torch.int32"),

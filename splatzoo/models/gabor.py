@@ -1,56 +1,71 @@
 """3D Gabor surfels (the paper) and its ablation baselines A, B, C.
 
-Colour inside a surfel with N waves at fixed orientations theta_i:
-    c(u,v) = sum_i w_i [cA (1 + cos t_i)/2 + cB (1 - cos t_i)/2],  t_i = 2 pi f_i (cos theta_i, sin theta_i).(u,v) + phi_i
-           = (sum_i w_i)(cA + cB)/2 + sum_i w_i (cA - cB)/2 cos t_i
-which is the rasterizer's wave bank with k_i = 2 pi f_i (cos theta_i, sin theta_i), a_i = w_i (cA - cB)/2.
-f is in cycles per sigma.
+Colour inside a surfel with N waves at fixed orientations theta_i, t_i = 2 pi f_i (cos theta_i, sin theta_i).(u,v) + phi_i
+(f in cycles per sigma), in one of two parametrisations (`color_param`):
+- "residual" (default): c(u,v) = c0 + sum_i w_i d cos t_i. The base colour c0 is a 2DGS surfel's colour and moves at
+  2DGS's pace; the waves share one colour difference d and are a residual around c0. A surfel whose waves have died
+  out is exactly a 2DGS surfel, so on plain colour gabor trains as 2DGS does.
+- "paper": c(u,v) = sum_i w_i [cA (1 + cos t_i)/2 + cB (1 - cos t_i)/2]
+                  = (sum_i w_i)(cA + cB)/2 + sum_i w_i (cA - cB)/2 cos t_i,
+  the paper's, where the weights scale the base colour too.
+Either is the rasterizer's wave bank with k_i = 2 pi f_i (cos theta_i, sin theta_i) and amplitudes a_i = w_i d
+(d = (cA - cB)/2 for "paper").
 
 Two options beyond the paper:
 - prune_waves > 0 (adaptive waves): during training, waves whose visible contribution falls below the threshold are
   removed, so a surfel on flat colour ends as a plain 2DGS surfel. A wave's contribution is what its surfel shows
   of it beyond a constant: opacity x the RMS, over the surfel's Gaussian, of the wave's zero-mean part (largest
-  channel). Its mean over the Gaussian, a cos(phi) exp(-|k|^2/2) (the Gaussian's characteristic function), is kept:
-  the removed wave's colour mean folds into two per-surfel weights on cA and cB (`folded_weights`), so removing a
-  wave leaves each surfel's mean colour exactly as it was. Active waves are packed to the front of each surfel's row
+  channel). Its mean over the Gaussian, a cos(phi) exp(-|k|^2/2) (the Gaussian's characteristic function), is kept,
+  so removing a wave leaves each surfel's mean colour exactly as it was: "residual" adds it to c0; "paper" folds it
+  into two per-surfel weights on cA and cB (`folded_weights`). Active waves are packed to the front of each surfel's row
   (`wave_index` keeps each slot's orientation) and `wave_counts` tells the rasterizer how many to evaluate. A surfel
-  with no wave left becomes a 2DGS surfel: its colour is color_a alone (color_b and the folded weights are zero and
-  receive no gradient). Checkpoints store active waves only (packed, with a per-surfel orientation bit mask) and,
-  for wave-less surfels, only color_a.
+  with no wave left becomes a 2DGS surfel: its colour is c0 (color_base; "paper": color_a alone) and d (color_diff;
+  "paper": color_b and the folded weights) is zero and receives no gradient. Checkpoints store active waves only
+  (packed, with a per-surfel orientation bit mask) and, for wave-less surfels, only the base colour.
 - sh_degree > 0: a view-dependent spherical-harmonics term (degree >= 1 bands, no DC) added to the base colour.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 from torch import nn
 
 from ..errors import ShapeError
-from ..geometry import eval_sh, num_sh_bases
+from ..geometry import SH_C0, eval_sh, num_sh_bases
 from ..types import Camera, Surfels
 from .base import SurfelModel, view_directions
 
 INIT_OFFSET = 0.05  # init="surfel": half the colour difference cA - cB, per channel, at most
+# color_param="residual": the base colour's rate is 2DGS's (2.5e-3 on its SH DC coefficient, in colour units x SH_C0)
+BASE_COLOR_LR = 2.5e-3 * SH_C0
 PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
 
 
 @dataclass
 class GaborConfig:
     n_waves: int = field(default=4, metadata={"help": "number of wave orientations per surfel (fan at i*pi/N)"})
+    color_param: str = field(default="residual", metadata={
+        "help": "residual: colour = base + sum_i w_i d cos(t_i), the base a 2DGS surfel's colour at 2DGS's rate and "
+                "the waves a residual around it (never worse than 2DGS on plain colour); paper: the paper's "
+                "sum_i w_i [cA (1 + cos t_i)/2 + cB (1 - cos t_i)/2], started as --init says; see BENCHMARKS.md"})
     sh_degree: int = field(default=0, metadata={"help": "spherical-harmonics degree (0..3) of a view-dependent term "
                                                         "added to the base colour; 0: view-independent (the paper)"})
     prune_waves: float = field(default=0.0, metadata={
         "help": "adaptive waves: during training remove waves whose visible contribution (opacity x RMS of the "
                 "wave over its surfel, colour units for images in [0,1]) is below this, e.g. 0.01; 0 keeps every wave"})
     init: str = field(default="paper", metadata={
-        "help": "paper: the public release's start (cA = point colour, cB = 0, weights 0.1 U(0,1): a dark start); "
-                "surfel: each surfel starts as the 2DGS surfel it would be (base colour = the point colour, weights "
-                "1/N, cA and cB the point colour +- a small offset, so waves start near zero); see BENCHMARKS.md"})
+        "help": "the start of --color-param paper: paper (the public release's: cA = point colour, cB = 0, weights "
+                "0.1 U(0,1), a dark start) or surfel (the 2DGS surfel it would be: weights 1/N, cA and cB the point "
+                "colour +- a small offset); see BENCHMARKS.md"})
     prune_from: float = field(default=0.5, metadata={
         "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow; "
                 "with densification on, pruning also waits until the last opacity reset has recovered)"})
+
+    # what a stored config written before an option existed meant: files from before `color_param` are "paper" models
+    stored_defaults: ClassVar[dict] = {"color_param": "paper"}
 
     def __post_init__(self):
         if int(self.n_waves) < 1:
@@ -61,8 +76,13 @@ class GaborConfig:
             raise ShapeError(f"sh_degree must be 0, 1, 2 or 3, got {self.sh_degree}")
         if not float(self.prune_waves) >= 0:
             raise ShapeError(f"prune_waves must be >= 0 (0: off), got {self.prune_waves}")
+        if self.color_param not in ("residual", "paper"):
+            raise ShapeError(f"color_param must be residual or paper, got {self.color_param!r}")
         if self.init not in ("surfel", "paper"):
             raise ShapeError(f"init must be surfel or paper, got {self.init!r}")
+        if self.color_param == "residual" and self.init != "paper":
+            raise ShapeError(f"init={self.init!r} starts the paper's colour parametrisation; add color_param=paper "
+                             "(--color-param paper), or drop it: the residual one has its own start")
         if not 0 <= float(self.prune_from) <= 1:
             raise ShapeError(f"prune_from is a fraction of the run in [0, 1], got {self.prune_from}")
 
@@ -82,8 +102,12 @@ class GaborModel(SurfelModel):
     def __init__(self, config: GaborConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
         n, k = num_primitives, config.n_waves
-        self.color_a = nn.Parameter(torch.zeros(n, 3))
-        self.color_b = nn.Parameter(torch.zeros(n, 3))
+        if self.residual:
+            self.color_base = nn.Parameter(torch.zeros(n, 3))
+            self.color_diff = nn.Parameter(torch.zeros(n, 3))
+        else:
+            self.color_a = nn.Parameter(torch.zeros(n, 3))
+            self.color_b = nn.Parameter(torch.zeros(n, 3))
         self.wave_weights = nn.Parameter(torch.zeros(n, k))
         self.wave_freqs = nn.Parameter(torch.zeros(n, k))
         if self.learn_phase:
@@ -91,9 +115,10 @@ class GaborModel(SurfelModel):
         if config.sh_degree > 0:
             self.sh_rest = nn.Parameter(torch.zeros(n, num_sh_bases(config.sh_degree) - 1, 3))
         if self.adaptive:
-            # removed waves' mean colour as weights on cA and cB: bookkeeping, not trained (until the first pruning
-            # the model is exactly gabor-K)
-            self.register_buffer("folded_weights", torch.zeros(n, 2))
+            if not self.residual:
+                # removed waves' mean colour as weights on cA and cB: bookkeeping, not trained (until the first
+                # pruning the model is exactly gabor-K)
+                self.register_buffer("folded_weights", torch.zeros(n, 2))
             self.register_buffer("wave_counts", torch.full((n,), k, dtype=torch.int32), persistent=False)
             self.register_buffer("wave_index", torch.arange(k).repeat(n, 1), persistent=False)
         angles = torch.arange(k) * math.pi / k if self.orientation == "fan" else torch.zeros(k)
@@ -102,6 +127,10 @@ class GaborModel(SurfelModel):
     @property
     def adaptive(self) -> bool:
         return float(self.config.prune_waves) > 0
+
+    @property
+    def residual(self) -> bool:
+        return self.config.color_param == "residual"
 
     @property
     def variable_width(self) -> tuple[str, ...]:
@@ -113,13 +142,19 @@ class GaborModel(SurfelModel):
         return ["wave_weights", "wave_freqs"] + (["wave_phases"] if self.learn_phase else [])
 
     def init_from_points(self, points, colors, generator):
-        """init="paper" (default), as the public release: cA = point colour, cB = black, w = 0.1 U(0,1).
-        init="surfel": the 2DGS surfel of the point, waves as a small residual: w = 1/N (so the base colour
-        (sum w)(cA + cB)/2 is the point colour) and cA, cB = colour +- d with d ~ INIT_OFFSET U(-1,1) per channel
-        (each wave's amplitude w (cA - cB)/2 = d/N). Both: f = U(0,1) cycles per sigma, phi = U(0,1)."""
+        """color_param="residual": the 2DGS surfel of the point (c0 = point colour) with the release's waves around it:
+        d = half the point colour, w = 0.1 U(0,1), so each wave starts as the release's does.
+        color_param="paper" with init="paper" (its default), as the public release: cA = point colour, cB = black,
+        w = 0.1 U(0,1). init="surfel": the 2DGS surfel of the point, waves as a small residual: w = 1/N (so the base
+        colour (sum w)(cA + cB)/2 is the point colour) and cA, cB = colour +- d with d ~ INIT_OFFSET U(-1,1) per
+        channel (each wave's amplitude w (cA - cB)/2 = d/N). All: f = U(0,1) cycles per sigma, phi = U(0,1)."""
         self.init_geometry(points, generator)
         n, k = self.wave_weights.shape
-        if self.config.init == "paper":
+        if self.residual:
+            self.color_base.copy_(colors)
+            self.color_diff.copy_(colors / 2)
+            self.wave_weights.copy_(0.1 * torch.rand(n, k, generator=generator))
+        elif self.config.init == "paper":
             self.color_a.copy_(colors)
             self.color_b.zero_()
             self.wave_weights.copy_(0.1 * torch.rand(n, k, generator=generator))
@@ -142,10 +177,18 @@ class GaborModel(SurfelModel):
             return torch.ones(w.shape, dtype=torch.bool, device=w.device)
         return torch.arange(w.shape[1], device=w.device)[None] < self.wave_counts[:, None]
 
+    def half_difference(self) -> torch.Tensor:
+        """[N,3] d: the colour every wave of a surfel scales by its weight (amplitude a_i = w_i d)."""
+        return self.color_diff if self.residual else (self.color_a - self.color_b) / 2
+
     def surfels(self, camera: Camera) -> Surfels:
         g = self.geometry()
         w = self.wave_weights
-        if self.adaptive:
+        if self.residual:
+            base = self.color_base
+            directions = self.directions.to(w)[self.wave_index] if self.adaptive else self.directions.to(w)
+            counts = self.wave_counts if self.adaptive else None
+        elif self.adaptive:
             # written so that, before any pruning (all slots active, folded weights 0), every operation rounds as
             # in gabor-K's expression below: the two runs stay bit-identical until the first pruning
             base = (w * self.active_slots()).sum(1, keepdim=True) * (self.color_a + self.color_b) / 2
@@ -160,15 +203,19 @@ class GaborModel(SurfelModel):
             # bands >= 1 only: the DC term is the Gabor base colour itself
             coeffs = torch.cat([self.sh_rest.new_zeros(self.sh_rest.shape[0], 1, 3), self.sh_rest], 1)
             base = base + eval_sh(self.config.sh_degree, coeffs, view_directions(self.means, camera))
-        amplitudes = w[..., None] * ((self.color_a - self.color_b) / 2)[:, None, :]
+        amplitudes = w[..., None] * self.half_difference()[:, None, :]
         vectors = (2 * math.pi) * self.wave_freqs[..., None] * directions
         return Surfels(g["means"], g["quats"], g["scales"], g["opacities"], base, vectors, self.phases(), amplitudes,
                        counts)
 
     def optim_groups(self, scene_extent: float) -> list[dict]:
-        groups = self.geometry_groups(scene_extent) + [
-            {"name": "color_a", "params": [self.color_a], "lr": 2.5e-3},
-            {"name": "color_b", "params": [self.color_b], "lr": 2.5e-3},
+        if self.residual:
+            color_groups = [{"name": "color_base", "params": [self.color_base], "lr": BASE_COLOR_LR},
+                      {"name": "color_diff", "params": [self.color_diff], "lr": 2.5e-3}]
+        else:
+            color_groups = [{"name": "color_a", "params": [self.color_a], "lr": 2.5e-3},
+                      {"name": "color_b", "params": [self.color_b], "lr": 2.5e-3}]
+        groups = self.geometry_groups(scene_extent) + color_groups + [
             {"name": "wave_weights", "params": [self.wave_weights], "lr": 1e-3},
             {"name": "wave_freqs", "params": [self.wave_freqs], "lr": 1e-3},
         ]
@@ -208,7 +255,7 @@ class GaborModel(SurfelModel):
         a cos(phi) e^{-|k|^2/2} and second moment a^2 (1 + cos(2 phi) e^{-2|k|^2}) / 2. contribution = opacity x the
         standard deviation (largest channel): how far the wave moves the surfel's colour away from its mean."""
         phi, k2 = self.phases(), (2 * math.pi * self.wave_freqs) ** 2
-        amp = self.wave_weights[..., None] * ((self.color_a - self.color_b) / 2)[:, None, :]  # [N,width,3]
+        amp = self.wave_weights[..., None] * self.half_difference()[:, None, :]  # [N,width,3]
         mean = amp * self._mean_cos()[..., None]
         second = amp ** 2 * ((1 + torch.cos(2 * phi) * torch.exp(-2 * k2)) / 2)[..., None]
         std = (second - mean ** 2).clamp_min(0).sqrt().amax(-1)
@@ -217,8 +264,9 @@ class GaborModel(SurfelModel):
     @torch.no_grad()
     def prune_waves(self, threshold: float, optimizer=None) -> dict:
         """Remove active waves whose contribution (wave_statistics) is below threshold, folding their mean colour
-        into folded_weights; repack each row (kept waves first, in orientation order) and trim the stored width to
-        the largest count. A surfel left without waves becomes a 2DGS surfel (colour in color_a). Returns counts."""
+        into the base colour (color_base, or folded_weights for "paper"); repack each row (kept waves first, in
+        orientation order) and trim the stored width to the largest count. A surfel left without waves becomes a 2DGS
+        surfel (colour in color_base, or color_a for "paper"). Returns counts."""
         if not self.adaptive:
             raise ShapeError("prune_waves needs a model created with prune_waves > 0 (it tracks per-surfel counts)")
         w = self.wave_weights.detach()
@@ -230,11 +278,14 @@ class GaborModel(SurfelModel):
         n_removed = int(removed.sum())
         if n_removed == 0:
             return {"removed": 0, "active": int(on.sum())}
-        # A removed wave's colour w[cA (1 + cos t)/2 + cB (1 - cos t)/2] has mean w[cA (1 + m)/2 + cB (1 - m)/2]
-        # with m = cos(phi) e^{-|k|^2/2}: it adds w (1 + m)/2 to cA's weight and w (1 - m)/2 to cB's.
         m = self._mean_cos()
         gone = w * removed
-        self.folded_weights.add_(torch.stack([(gone * (1 + m)).sum(1), (gone * (1 - m)).sum(1)], 1) / 2)
+        if self.residual:  # a removed wave w d cos t has mean w d m, m = cos(phi) e^{-|k|^2/2}: the base keeps it
+            self.color_base.add_((gone * m).sum(1, keepdim=True) * self.color_diff)
+        else:
+            # A removed wave's colour w[cA (1 + cos t)/2 + cB (1 - cos t)/2] has mean w[cA (1 + m)/2 + cB (1 - m)/2]:
+            # it adds w (1 + m)/2 to cA's weight and w (1 - m)/2 to cB's.
+            self.folded_weights.add_(torch.stack([(gone * (1 + m)).sum(1), (gone * (1 - m)).sum(1)], 1) / 2)
         order = torch.sort((~keep).to(torch.int8), dim=1, stable=True).indices  # kept first, order preserved
         counts = keep.sum(1)
         new_width = int(counts.max()) if n else 0
@@ -246,7 +297,9 @@ class GaborModel(SurfelModel):
 
         # surfels losing their last wave (every weight is now folded): keep the colour fa cA + fb cB in color_a alone
         emptied = (counts == 0) & (self.wave_counts > 0)
-        if bool(emptied.any()):
+        if self.residual and bool(emptied.any()):
+            self.set_rows("color_diff", emptied, 0.0, optimizer)
+        elif bool(emptied.any()):
             fa, fb = self.folded_weights[emptied].unbind(1)
             color = fa[:, None] * self.color_a[emptied] + fb[:, None] * self.color_b[emptied]
             self.set_rows("color_a", emptied, color, optimizer)
@@ -264,8 +317,10 @@ class GaborModel(SurfelModel):
         return {"waves_active": active, "wave_slots": n * k,
                 "wave_fraction": active / (n * k) if n * k else 0.0}
 
-    # what a wave-less surfel does not store (zero, and frozen by surfels(): its colour is color_a alone)
-    _waved_only = ("color_b", "folded_weights")
+    @property
+    def _waved_only(self) -> tuple[str, ...]:
+        """What a wave-less surfel does not store (zero, and frozen: its colour is the base colour alone)."""
+        return ("color_diff",) if self.residual else ("color_b", "folded_weights")
 
     def size_bytes(self) -> int:
         if not self.adaptive:
@@ -297,7 +352,7 @@ class GaborModel(SurfelModel):
     def load_checkpoint_state(self, state: dict) -> None:
         if not self.adaptive or "wave_mask" not in state:
             return super().load_checkpoint_state(state)
-        if "folded_weight" in state:
+        if "folded_weight" in state and not self.residual:
             state = _upgrade_single_fold(state)
         mask = state["wave_mask"].long()
         n, k, width = mask.shape[0], int(self.config.n_waves), int(state["wave_width"])
@@ -315,8 +370,10 @@ class GaborModel(SurfelModel):
             dense[name][counts > 0] = state[name]
         rest = {k2: v for k2, v in state.items() if k2 not in dense and k2 not in ("wave_mask", "wave_width")}
         self.replace_parameters({name: dense.get(name, rest.get(name)) for name, _ in self.named_parameters()})
-        self.replace_parameters({"wave_counts": counts.to(torch.int32), "wave_index": index,
-                                 "folded_weights": dense["folded_weights"]})
+        buffers = {"wave_counts": counts.to(torch.int32), "wave_index": index}
+        if not self.residual:
+            buffers["folded_weights"] = dense["folded_weights"]
+        self.replace_parameters(buffers)
         self.load_state_dict({k2: v for k2, v in rest.items() if k2 not in dense}, strict=False)
 
 
