@@ -64,10 +64,11 @@ def parse_model_arg(arg: str) -> ModelChoice:
 def compare(models: list[str], data=None, out="runs/compare", *, iterations: int | None = None,
             num_primitives: int | None = None, densify: bool = False, quick: bool = False, seed: int = 0,
             backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
-            synthetic_scene: str | None = None, overwrite: bool = False) -> dict:
+            synthetic_scene: str | None = None, overwrite: bool = False, equal_bytes: bool = False) -> dict:
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
-    synthetic scene is made. Runs in out/runs/<label> made with the same settings are reused (finished) or
+    synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the bytes of
+    the most compact model at `num_primitives`: each model gets as many primitives as fit in them. Runs in out/runs/<label> made with the same settings are reused (finished) or
     resumed (interrupted); made with other settings, they are an error, or retrained with `overwrite`."""
     from .data import load_scene
     from .zoo import make_config
@@ -89,6 +90,13 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     num_primitives = num_primitives or (preset.num_primitives if preset else None)
     base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, seed=seed,
                            backend=backend).validate()
+    counts = {c.label: num_primitives for c in choices}
+    if equal_bytes:
+        if densify or not num_primitives:
+            raise SplatzooError("--equal-bytes compares models at fixed primitive counts: give --num-primitives (or "
+                                "--quick) and leave densification off")
+        counts = equal_byte_counts(choices, num_primitives)
+    cfgs = {c.label: replace(base_cfg, num_primitives=counts[c.label]) for c in choices}
     # decide every run before training any: a run made with other settings is an error (or, with overwrite,
     # retrained), never a row of old numbers beside new settings
     plan = {}
@@ -99,7 +107,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
         if status != "new":
             diffs = differences(run.record(), make_record(scene, scene_options, c.model, model_configs[c.label],
-                                                          base_cfg))
+                                                          cfgs[c.label]))
             if diffs and not overwrite:
                 raise SplatzooError(f"{run.path} was trained with other settings ({'; '.join(diffs)}); pass "
                                     "--overwrite to retrain it, or choose another --out")
@@ -107,14 +115,15 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         plan[c.label] = (run, status)
     runs, settings = {}, {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
                           "num_primitives": num_primitives, "densify": densify, "seed": seed, "backend": backend,
-                          "scene_options": scene_options, "models": labels,
+                          "scene_options": scene_options, "models": labels, "equal_bytes": equal_bytes,
+                          "primitives": counts,
                           "train_views": len(scene.train), "test_views": len(scene.test)}
     for c in choices:
         run, status = plan[c.label]
         if status == "finished":  # trained earlier with these settings: reuse
             runs[c.label] = run.metrics() or evaluate_run(run.path, backend=backend)
         else:
-            result = train(scene, c.model, c.options, replace(base_cfg), run.path, resume=status in ("started", "interrupted"),
+            result = train(scene, c.model, c.options, cfgs[c.label], run.path, resume=status in ("started", "interrupted"),
                            overwrite=status == "overwrite", progress=progress, scene_options=scene_options,
                            command="splatzoo compare")
             runs[c.label] = result.metrics
@@ -126,6 +135,25 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     plot_convergence(run_dirs, out / "convergence.png")
     plot_comparison(scene, run_dirs, out / "compare.png", backend=settings["backend"])
     return report
+
+
+def bytes_per_primitive(choice: ModelChoice) -> int:
+    """What one more primitive adds to the model's stored size (as trained from the start: every wave present)."""
+    from .zoo import create_model
+
+    sizes = []
+    for n in (1, 2):
+        model = create_model(choice.model, torch.zeros(n, 3), torch.full((n, 3), 0.5), **choice.options)
+        sizes.append(model.size_bytes())
+    return sizes[1] - sizes[0]
+
+
+def equal_byte_counts(choices: list[ModelChoice], num_primitives: int) -> dict[str, int]:
+    """Primitive counts at equal bytes: the most compact model gets num_primitives, every other model as many as
+    fit in the same bytes (at least one)."""
+    per = {c.label: bytes_per_primitive(c) for c in choices}
+    budget = min(per.values()) * num_primitives
+    return {label: max(1, budget // b) if b > 0 else num_primitives for label, b in per.items()}
 
 
 def _safe(label: str) -> str:
@@ -158,11 +186,13 @@ def report_markdown(report: dict) -> str:
 
     first = labels[0]
     conv = runs[first].get("conventions", {})
+    budget = (f"equal bytes: each model as many primitives as fit in the size of {s['num_primitives']} of the most "
+              "compact one" if s.get("equal_bytes") else f"{s['num_primitives'] or 'all'} initial primitives")
     lines = [
         f"# splatzoo compare: {', '.join(labels)}", "",
         f"Scene `{s['scene']}` ({s['train_views']} train / {s['test_views']} test views), {s['iterations']} iterations, "
         f"{'densification on' if s['densify'] else 'densification off'}, "
-        f"{s['num_primitives'] or 'all'} initial primitives, seed {s['seed']}, backend `{s['backend']}`.", "",
+        f"{budget}, seed {s['seed']}, backend `{s['backend']}`.", "",
         "| model | SSIM ↑ | PSNR ↑ | LPIPS ↓ | FPS | train s | size MB | primitives |",
         "|---|---|---|---|---|---|---|---|",
     ]

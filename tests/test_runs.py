@@ -120,6 +120,27 @@ def test_compare_never_reports_old_numbers(tiny_data, tmp_path):
     assert r.exit_code != 0 and "dataset" in str(r.exception)
 
 
+def test_compare_at_equal_bytes(tiny_data, tmp_path):
+    """--equal-bytes: the most compact model gets --num-primitives, the others as many as fit in its bytes; the runs
+    record their own counts, so an equal-count comparison in the same folder is another setting, not a reuse."""
+    out = tmp_path / "cmp"
+    base = ["compare", "gabor", "2dgs", "--data", str(tiny_data), "--out", str(out), "--num-primitives", "100",
+            "--backend", "cpu", "--iterations", "4"]
+    r = runner.invoke(app, base + ["--equal-bytes"])
+    assert r.exit_code == 0, r.output
+    report = json.loads((out / "compare.json").read_text())
+    runs, counts = report["runs"], report["settings"]["primitives"]
+    assert runs["2dgs"]["num_primitives"] == counts["2dgs"] == 100
+    # gabor K=4: 28 floats a surfel against 2DGS's 13
+    assert runs["gabor"]["num_primitives"] == counts["gabor"] == 100 * 13 // 28
+    assert 0.95 < runs["gabor"]["size_bytes"] / runs["2dgs"]["size_bytes"] <= 1.0
+    assert "equal bytes" in (out / "report.md").read_text() and "equal bytes" in r.output
+    r = runner.invoke(app, base)
+    assert r.exit_code != 0 and "num_primitives" in str(r.exception)
+    r = runner.invoke(app, base + ["--equal-bytes", "--densify"])
+    assert r.exit_code != 0 and "fixed primitive counts" in str(r.exception)
+
+
 def test_resume_takes_its_settings_from_the_run(tiny_data, tmp_path):
     run = tmp_path / "run"
     r = runner.invoke(app, ["train", str(tiny_data), "--model", "2dgs", "--iterations", "8", "--num-primitives", "80",
