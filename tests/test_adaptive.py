@@ -250,6 +250,32 @@ def test_trainer_prunes_through_the_hook(tmp_path):
     assert torch.equal(render(back, "cpu").rgb, render(m.cpu(), "cpu").rgb)
 
 
+def test_relative_threshold_follows_the_training_error(tmp_path):
+    """prune_relative: the threshold is that fraction of the trainer's recent mean absolute error, which the
+    checkpoint keeps (a resumed run prunes as the uninterrupted one would)."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.runs import Run, train
+    from splatzoo.training import TrainConfig
+
+    with pytest.raises(ShapeError, match="not both"):
+        splatzoo.create_model("gabor", prune_waves=0.01, prune_relative=0.2)
+    with pytest.raises(ShapeError, match="prune_relative"):
+        splatzoo.create_model("gabor", prune_relative=-1.0)
+    m = adaptive_model(threshold=0.0, prune_relative=0.5)
+    assert m.adaptive and m.prune_threshold() == 0.0  # nothing measured yet: nothing pruned
+    m.recent_error = 0.04
+    assert m.prune_threshold() == pytest.approx(0.02)
+
+    data = make_synthetic_scene("plain", tmp_path / "plain", views=6, width=32, height=32)
+    cfg = TrainConfig(iterations=60, num_primitives=150, densify=False, log_every=10, eval_every=60)
+    res = train(data, "gabor", {"prune_relative": 0.5, "prune_from": 0.3}, cfg, tmp_path / "run", progress=False,
+                evaluate_at_end=False)
+    error = res.model.recent_error
+    assert 0.001 < error < 0.5 and res.model.summary()["waves_active"] < 150 * 4
+    state = Run(tmp_path / "run").checkpoint()
+    assert state["recent_error"] == pytest.approx(error)
+
+
 # ---- view-dependent colour --------------------------------------------------------------------------------------
 
 def test_gabor_sh_is_view_dependent():

@@ -12,13 +12,14 @@ Either is the rasterizer's wave bank with k_i = 2 pi f_i (cos theta_i, sin theta
 (d = (cA - cB)/2 for "paper").
 
 Two options beyond the paper:
-- prune_waves > 0 (adaptive waves): during training, waves whose visible contribution falls below the threshold are
-  removed, so a surfel on flat colour ends as a plain 2DGS surfel. A wave's contribution is what its surfel shows
+- prune_waves > 0 or prune_relative > 0 (adaptive waves): during training, waves whose visible contribution falls
+  below the threshold (fixed, or a fraction of the recent training error) are removed, so a surfel on flat colour
+  ends as a plain 2DGS surfel. A wave's contribution is what its surfel shows
   of it beyond a constant: opacity x the RMS, over the surfel's Gaussian, of the wave's zero-mean part (largest
   channel). Its mean over the Gaussian, a cos(phi) exp(-|k|^2/2) (the Gaussian's characteristic function), is kept,
   so removing a wave leaves each surfel's mean colour exactly as it was: "residual" adds it to c0; "paper" folds it
-  into two per-surfel weights on cA and cB (`folded_weights`). Active waves are packed to the front of each surfel's row
-  (`wave_index` keeps each slot's orientation) and `wave_counts` tells the rasterizer how many to evaluate. A surfel
+  into two per-surfel weights on cA and cB (`folded_weights`). Active waves are packed to the front of each surfel's
+  row (`wave_index` keeps each slot's orientation) and `wave_counts` tells the rasterizer how many to evaluate. A surfel
   with no wave left becomes a 2DGS surfel: its colour is c0 (color_base; "paper": color_a alone) and d (color_diff;
   "paper": color_b and the folded weights) is zero and receives no gradient. Checkpoints store active waves only
   (packed, with a per-surfel orientation bit mask) and, for wave-less surfels, only the base colour.
@@ -56,6 +57,10 @@ class GaborConfig:
     prune_waves: float = field(default=0.0, metadata={
         "help": "adaptive waves: during training remove waves whose visible contribution (opacity x RMS of the "
                 "wave over its surfel, colour units for images in [0,1]) is below this, e.g. 0.01; 0 keeps every wave"})
+    prune_relative: float = field(default=0.0, metadata={
+        "help": "adaptive waves with a threshold relative to the fit: remove waves whose visible contribution is "
+                "below this fraction of the recent mean absolute training error, e.g. 0.25 (a scene fitted to 40 dB "
+                "keeps fainter waves than one at 25 dB); instead of --prune-waves"})
     init: str = field(default="paper", metadata={
         "help": "the start of --color-param paper: paper (the public release's: cA = point colour, cB = 0, weights "
                 "0.1 U(0,1), a dark start) or surfel (the 2DGS surfel it would be: weights 1/N, cA and cB the point "
@@ -76,6 +81,11 @@ class GaborConfig:
             raise ShapeError(f"sh_degree must be 0, 1, 2 or 3, got {self.sh_degree}")
         if not float(self.prune_waves) >= 0:
             raise ShapeError(f"prune_waves must be >= 0 (0: off), got {self.prune_waves}")
+        if not float(self.prune_relative) >= 0:
+            raise ShapeError(f"prune_relative must be >= 0 (0: off), got {self.prune_relative}")
+        if float(self.prune_waves) > 0 and float(self.prune_relative) > 0:
+            raise ShapeError("give one pruning threshold: prune_waves (fixed, colour units) or prune_relative "
+                             "(a fraction of the training error), not both")
         if self.color_param not in ("residual", "paper"):
             raise ShapeError(f"color_param must be residual or paper, got {self.color_param!r}")
         if self.init not in ("surfel", "paper"):
@@ -97,7 +107,7 @@ class GaborModel(SurfelModel):
 
     orientation = "fan"   # "fan": theta_i = i pi / N; "u": every wave along the local u axis
     learn_phase = True
-    primitive_buffers = ("wave_counts", "wave_index", "folded_weights")  # present only with prune_waves > 0
+    primitive_buffers = ("wave_counts", "wave_index", "folded_weights")  # present only for adaptive waves
 
     def __init__(self, config: GaborConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
@@ -126,7 +136,7 @@ class GaborModel(SurfelModel):
 
     @property
     def adaptive(self) -> bool:
-        return float(self.config.prune_waves) > 0
+        return float(self.config.prune_waves) > 0 or float(self.config.prune_relative) > 0
 
     @property
     def residual(self) -> bool:
@@ -241,7 +251,14 @@ class GaborModel(SurfelModel):
             return None
         ramp = PRUNE_RAMP * (cfg.iterations - first)
         fraction = 1.0 if ramp <= 0 else min(1.0, (step - first) / ramp)
-        return self.prune_waves(fraction * float(self.config.prune_waves), optimizer)
+        return self.prune_waves(fraction * self.prune_threshold(), optimizer)
+
+    def prune_threshold(self) -> float:
+        """The full pruning threshold now: prune_waves, or prune_relative x the recent training error (0, pruning
+        nothing, before the trainer has measured one)."""
+        if float(self.config.prune_relative) > 0:
+            return float(self.config.prune_relative) * (self.recent_error or 0.0)
+        return float(self.config.prune_waves)
 
     def _mean_cos(self) -> torch.Tensor:
         """[N,width]: cos(k.(u,v) + phi) averaged over u,v ~ N(0, I), = cos(phi) e^{-|k|^2/2}."""
@@ -268,7 +285,8 @@ class GaborModel(SurfelModel):
         orientation order) and trim the stored width to the largest count. A surfel left without waves becomes a 2DGS
         surfel (colour in color_base, or color_a for "paper"). Returns counts."""
         if not self.adaptive:
-            raise ShapeError("prune_waves needs a model created with prune_waves > 0 (it tracks per-surfel counts)")
+            raise ShapeError("prune_waves needs a model created with prune_waves or prune_relative > 0 (it tracks "
+                             "per-surfel counts)")
         w = self.wave_weights.detach()
         n, width = w.shape
         on = self.active_slots()

@@ -21,6 +21,7 @@ from .losses import distortion_loss, normal_consistency_loss, photometric_loss
 REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many iterations and scaled to the run
 PIXELS_PER_SURFEL = 128       # default densification budget: one surfel per this many training pixels
 MAX_GROWTH = 0.5              # one densification step adds at most this fraction of the current count
+ERROR_AVERAGE = 0.01          # the model's recent_error: an exponential average over about 1/this many steps
 
 
 def densify_budget(scene, initial: int) -> int:
@@ -143,6 +144,8 @@ class Trainer:
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.iteration, self.train_seconds, self.view_order = 0, 0.0, []
         if state is not None:
+            # checkpoints from before the error average start it again (it settles within ~100 steps)
+            self.net.recent_error = state.get("recent_error")
             self.optimizer.load_state_dict(state["optimizer"])
             self.stats.load_state_dict(state["densify"])
             if self.comm.rank != 0:  # the checkpoint holds the sums over all ranks; rank 0 carries them on
@@ -184,7 +187,8 @@ class Trainer:
             self.comm.sum_(list(stats.values()))
         return {"model": self.net.checkpoint(), "optimizer": self.optimizer.state_dict(),
                 "densify": stats, "generator": self.gen.get_state(), "iteration": self.iteration,
-                "train_seconds": self.train_seconds, "view_order": list(self.view_order)}
+                "train_seconds": self.train_seconds, "view_order": list(self.view_order),
+                "recent_error": self.net.recent_error}
 
     def _loss(self, view, step: int):
         cfg = self.cfg
@@ -213,10 +217,13 @@ class Trainer:
 
     def _backward(self, views: list, step: int, track: bool):
         """Sum of the views' gradients, divided by the step's view count (over all ranks) once summed over ranks.
-        Each view's own gradient feeds the densification statistics, as with one view per step."""
+        Each view's own gradient feeds the densification statistics, as with one view per step. Also returns the
+        step's mean absolute colour error over all views of all ranks (summed with the gradients: every rank sees
+        the same value)."""
         params = [p for g in self.optimizer.param_groups for p in g["params"]]
         total = {}
         losses, photos = [], []
+        error = torch.zeros((), device=self.device)
         for view in views:
             loss, l_photo, render, target, cam = self._loss(view, step)
             for p in params:
@@ -229,12 +236,13 @@ class Trainer:
                     total[p] = p.grad if p not in total else total[p] + p.grad
             losses.append(loss.detach())
             photos.append(l_photo.detach())
+            error += (render.rgb.detach() - target).abs().mean()
         grads = [total.setdefault(p, torch.zeros_like(p)) for p in params]
-        self.comm.sum_(grads)
+        self.comm.sum_(grads + [error])
         n = self.cfg.views_per_step
         for p, grad in zip(params, grads):
             p.grad = grad / n if n > 1 else grad
-        return torch.stack(losses).mean(), torch.stack(photos).mean(), render, target
+        return torch.stack(losses).mean(), torch.stack(photos).mean(), render, target, float(error) / n
 
     def step(self) -> dict:
         """One iteration; returns {"loss", "photo"} and, on logging iterations, the log records to write (rank 0)."""
@@ -251,7 +259,9 @@ class Trainer:
             if g.get("name") == "means":
                 g["lr"] = _position_lr(cfg, step, scene.extent) * self.lr_scale
         track = self.densify_on and step <= self.d_until
-        loss, l_photo, render, target = self._backward(mine, step, track)
+        loss, l_photo, render, target, error = self._backward(mine, step, track)
+        previous = net.recent_error
+        net.recent_error = error if previous is None else previous + ERROR_AVERAGE * (error - previous)
         optimizer.step()
         if self.densify_on and self.d_from < step <= self.d_until:
             if step % self.d_every == 0:
