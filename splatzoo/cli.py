@@ -170,7 +170,7 @@ _WHITE = typer.Option(False, "--white-background", hidden=True, help="the same a
 _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, reference, cpu or cuda")
 
 
-_TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "num_primitives", "max_primitives", "lambda_dist",
+_TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "num_primitives", "max_primitives", "lambda_dist",
                  "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc", "antialias")
 
 
@@ -194,10 +194,14 @@ def train_command(
     test_every: Optional[int] = _TEST_EVERY,
     background: Optional[str] = _BACKGROUND,
     white_background: bool = _WHITE,
-    densify: bool = typer.Option(True, "--densify/--no-densify", help="adaptive density control (2DGS schedule)"),
+    densify: bool = typer.Option(True, "--densify/--no-densify", help="densification (off: a fixed count)"),
+    strategy: str = typer.Option("adc", "--strategy", help="adc: 2DGS's adaptive density control (clone, split, "
+                                 "prune, opacity resets); mcmc: grow 5% a step to the budget, then relocate dead "
+                                 "surfels onto live ones"),
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n",
                                                  help="start from exactly N primitives (subsampled initial points)"),
-    max_primitives: Optional[int] = typer.Option(None, "--max-primitives", help="cap densification at N primitives"),
+    max_primitives: Optional[int] = typer.Option(None, "--max-primitives", help="cap densification at N primitives "
+                                                 "(default: one per 128 training pixels)"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     resume: bool = typer.Option(False, "--resume", help="continue the interrupted run in --out with its own settings"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace the run already in --out"),

@@ -14,6 +14,7 @@ import torch
 from ..errors import SplatzooError
 from ..rasterizers import rasterize
 from ..zoo import create_model, model_from_checkpoint
+from . import mcmc
 from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .distributed import Comm
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
@@ -21,6 +22,7 @@ from .losses import distortion_loss, normal_consistency_loss, photometric_loss
 REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many iterations and scaled to the run
 PIXELS_PER_SURFEL = 128       # default densification budget: one surfel per this many training pixels
 MAX_GROWTH = 0.5              # one densification step adds at most this fraction of the current count
+STRATEGIES = ("adc", "mcmc")   # densification strategies (TrainConfig.strategy)
 ERROR_AVERAGE = 0.01          # the model's recent_error: an exponential average over about 1/this many steps
 
 
@@ -40,6 +42,9 @@ class TrainConfig:
     backend: str = field(default="auto", metadata={"operational": True})
     seed: int = 0
     densify: bool = True
+    strategy: str = field(default="adc", metadata={
+        "help": "how densification grows the count: adc (2DGS's adaptive density control: clone, split, prune, "
+                "opacity resets) or mcmc (grow by 5% a step to the budget, then move dead surfels onto live ones)"})
     num_primitives: int | None = field(default=None, metadata={"help": "start from exactly this many primitives"})
     max_primitives: int | None = field(default=None, metadata={
         "help": "cap on the count densification reaches (default: one surfel per 128 training pixels, at least "
@@ -75,6 +80,8 @@ class TrainConfig:
                 raise SplatzooError(f"training option {f.name} must not be negative, got {v}")
         if self.iterations < 1:
             raise SplatzooError(f"--iterations must be at least 1, got {self.iterations}")
+        if self.strategy not in STRATEGIES:
+            raise SplatzooError(f"--strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
         for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every", "batch_size", "nproc"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise SplatzooError(f"training option {name} must be at least 1, got {getattr(self, name)}")
@@ -158,6 +165,7 @@ class Trainer:
         self.random_background = bool(getattr(scene, "random_background", False))
         self.view_index = {id(v): i for i, v in enumerate(scene.train)}
         self.densify_on = cfg.densify and hasattr(self.net, "logit_opacity")
+        self.mcmc = self.densify_on and cfg.strategy == "mcmc"
         self.d_from, self.d_until = cfg.at(cfg.densify_from), cfg.at(cfg.densify_until)
         # a short run keeps the 30k schedule's windows: densification decides on at least densify_interval
         # iterations of gradient statistics, and opacity resets come no closer than opacity_reset_interval / 3
@@ -206,6 +214,8 @@ class Trainer:
                            settings=self.net.raster_settings)
         l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
         loss = l_photo
+        if self.mcmc:
+            loss = loss + mcmc.regulariser(self.net)
         if cfg.lambda_normal > 0 and step > cfg.at(cfg.normal_from):
             loss = loss + cfg.lambda_normal * normal_consistency_loss(render, cam)
         if cfg.lambda_dist > 0 and step > cfg.at(cfg.dist_from):
@@ -244,6 +254,17 @@ class Trainer:
             p.grad = grad / n if n > 1 else grad
         return torch.stack(losses).mean(), torch.stack(photos).mean(), render, target, float(error) / n
 
+    def _mcmc_step(self, step: int) -> None:
+        """--strategy mcmc: every densification interval, dead surfels move onto live ones and the count grows by
+        up to GROWTH toward the budget; every step, nearly dead surfels wander along their planes."""
+        cfg, net = self.cfg, self.net
+        if self.d_from < step <= cfg.at(mcmc.REFINE_UNTIL) and step % self.d_every == 0:
+            mcmc.relocate_dead(net, self.optimizer, self.gen)
+            n = net.num_primitives
+            mcmc.add_surfels(net, self.optimizer, min(self.budget, n + max(1, int(mcmc.GROWTH * n))) - n, self.gen)
+        lr = next(g["lr"] for g in self.optimizer.param_groups if g.get("name") == "means")
+        mcmc.inject_noise(net, lr, self.gen)
+
     def step(self) -> dict:
         """One iteration; returns {"loss", "photo"} and, on logging iterations, the log records to write (rank 0)."""
         cfg, net, optimizer, scene, comm = self.cfg, self.net, self.optimizer, self.scene, self.comm
@@ -258,12 +279,14 @@ class Trainer:
         for g in optimizer.param_groups:
             if g.get("name") == "means":
                 g["lr"] = _position_lr(cfg, step, scene.extent) * self.lr_scale
-        track = self.densify_on and step <= self.d_until
+        track = self.densify_on and not self.mcmc and step <= self.d_until
         loss, l_photo, render, target, error = self._backward(mine, step, track)
         previous = net.recent_error
         net.recent_error = error if previous is None else previous + ERROR_AVERAGE * (error - previous)
         optimizer.step()
-        if self.densify_on and self.d_from < step <= self.d_until:
+        if self.mcmc:
+            self._mcmc_step(step)
+        elif self.densify_on and self.d_from < step <= self.d_until:
             if step % self.d_every == 0:
                 if comm.world > 1:  # every rank decides from the statistics of all views
                     comm.sum_([self.stats.grad_sum, self.stats.count])
