@@ -12,7 +12,8 @@ One vertex per primitive, float32 properties, little endian:
   gabor_weight_*, gabor_freq_*, gabor_phase_*   Gabor-family colour and waves
   <param>_<i>                  any other per-primitive parameter of a plugin, flattened row-major
 Header comments name the splatzoo model and its config (`comment splatzoo model gabor`,
-`comment splatzoo config {"n_waves": 4}`), so `load_ply` rebuilds the same model. Parameters are stored exactly
+`comment splatzoo config {"n_waves": 4}`), and `comment splatzoo antialias true` a model trained and rendered with
+the pixel-footprint filter, so `load_ply` rebuilds the same model. Parameters are stored exactly
 (float32 as trained), so a round trip renders identically. A PLY without those comments (written by 2DGS itself)
 loads as a `2dgs` model whose SH degree follows from the number of f_rest properties.
 
@@ -167,8 +168,10 @@ def save_ply(model, path) -> Path:
     header = ["ply", "format binary_little_endian 1.0",
               f"comment splatzoo {__version__} ply export, format {FORMAT_VERSION}",
               f"comment splatzoo model {name}",
-              f"comment splatzoo config {json.dumps(_config_dict(model), separators=(',', ':'), default=str)}",
-              f"element vertex {n}"]
+              f"comment splatzoo config {json.dumps(_config_dict(model), separators=(',', ':'), default=str)}"]
+    if getattr(model, "antialias", False):  # rendered with the pixel-footprint filter (absent: without)
+        header.append("comment splatzoo antialias true")
+    header.append(f"element vertex {n}")
     header += [f"property float {k}" for k in columns]
     header.append("end_header")
     with atomic_path(path) as tmp:
@@ -398,6 +401,7 @@ def load_ply(path):
                                     "Export the model again")
         new[pname] = _from_columns(pname, cols, trailing)
     model.replace_parameters(new)
+    model.antialias = "splatzoo antialias true" in comments
     return model
 
 

@@ -249,3 +249,14 @@ def test_a_crafted_antialias_entry_is_refused(tmp_path):
     assert model_from_checkpoint(model.checkpoint()).antialias
     with pytest.raises(SplatzooError, match="antialias"):
         model_from_checkpoint({**ck, "antialias": "yes"})
+
+
+def test_ply_export_keeps_the_filter(tmp_path):
+    from splatzoo.export import load_ply, save_ply
+    from splatzoo.zoo import create_model
+
+    model = create_model("gabor", torch.rand(20, 3), torch.rand(20, 3))
+    assert not load_ply(save_ply(model, tmp_path / "plain.ply")).antialias
+    model.antialias = True
+    back = load_ply(save_ply(model, tmp_path / "aa.ply"))
+    assert back.antialias and back.raster_settings == ANTIALIASED
