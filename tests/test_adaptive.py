@@ -1,7 +1,6 @@
 """Adaptive waves: the Surfels.wave_counts contract, wave pruning in the gabor model, its packed checkpoint,
 densification with pruned waves, the trainer hook, and view-dependent (SH) colour for the gabor family."""
 import json
-import math
 
 import pytest
 import torch
@@ -275,96 +274,6 @@ def test_relative_threshold_follows_the_training_error(tmp_path):
     assert 0.001 < error < 0.5 and res.model.summary()["waves_active"] < 150 * 4
     state = Run(tmp_path / "run").checkpoint()
     assert state["recent_error"] == pytest.approx(error)
-
-
-# ---- growing waves -----------------------------------------------------------------------------------------------
-
-def one_surfel_facing(n_waves=4):
-    """A single opaque surfel at the origin facing the camera CAM, wave-less, growing waves."""
-    m = splatzoo.create_model("gabor", torch.zeros(1, 3), torch.full((1, 3), 0.5), n_waves=n_waves, grow_waves=True)
-    with torch.no_grad():
-        m.quats.copy_(torch.tensor([[1.0, 0.0, 0.0, 0.0]]))
-        m.log_scales.fill_(math.log(0.6))
-        m.logit_opacity.fill_(4.0)
-    return m
-
-
-def test_growing_model_starts_as_2dgs_and_its_probe_renders_as_it():
-    pts, cols = point_cloud()
-    m = splatzoo.create_model("gabor", pts, cols, seed=1, grow_waves=True)
-    assert m.adaptive and m.wave_counts.eq(0).all() and m.summary()["waves_active"] == 0
-    s = m.surfels(CAM)
-    flat = Surfels.constant_color(s.means, s.quats, s.scales, s.opacities, s.base_color)
-    assert torch.equal(render(m, "cpu").rgb, rasterize(flat, CAM, backend="cpu").rgb)
-    probe, leaf = m.probe_surfels(CAM)
-    assert leaf.shape == (64, 4 * 3 * 2, 3) and leaf.requires_grad
-    with torch.no_grad():
-        assert torch.equal(rasterize(probe, CAM, backend="cpu").rgb, render(m, "cpu").rgb)
-    with pytest.raises(ShapeError, match="residual"):
-        splatzoo.create_model("gabor", grow_waves=True, color_param="paper")
-
-
-@pytest.mark.parametrize("orientation,freq", [(1, 1.0), (3, 2.0)])
-def test_growth_finds_the_wave_the_residual_holds(orientation, freq):
-    """Known answer: the image is the surfel with one wave (orientation, frequency, phase, colour); a growth step
-    from the wave-less surfel adds exactly that orientation and frequency, with its phase and colour direction."""
-    m = one_surfel_facing()
-    target_colour, phase = torch.tensor([0.3, 0.1, -0.2]), 0.7
-    s = m.surfels(CAM)
-    angle = orientation * math.pi / 4
-    k = 2 * math.pi * freq * torch.tensor([[[math.cos(angle), math.sin(angle)]]])
-    truth = Surfels(s.means, s.quats, s.scales, s.opacities, s.base_color, k, torch.tensor([[phase]]),
-                    target_colour[None, None])
-    with torch.no_grad():
-        image = rasterize(truth, CAM, backend="reference").rgb
-        before = rasterize(m.surfels(CAM), CAM, backend="reference").rgb
-    probe, leaf = m.probe_surfels(CAM)
-    (0.5 * (rasterize(probe, CAM, backend="reference").rgb - image).square().sum()).backward()
-    info = m.grow(leaf.grad)
-    assert info == {"grown": 0, "active": 0}  # one surfel: the top 30% of one candidate is nobody
-    from splatzoo.models import gabor as gabor_module
-
-    share = gabor_module.GROW_SHARE
-    gabor_module.GROW_SHARE = 1.0
-    try:
-        assert m.grow(leaf.grad)["grown"] == 1
-    finally:
-        gabor_module.GROW_SHARE = share
-    with torch.no_grad():
-        assert int(m.wave_counts[0]) == 1 and int(m.wave_index[0, 0]) == orientation
-        assert float(m.wave_freqs[0, 0]) == freq
-        assert abs(math.remainder(float(m.wave_phases[0, 0]) - phase, 2 * math.pi)) < 0.05
-        amplitude = m.wave_weights[0, 0] * m.color_diff[0]
-        assert torch.nn.functional.cosine_similarity(amplitude, target_colour, dim=0) > 0.999
-        # and the grown wave explains part of the residual
-        after = rasterize(m.surfels(CAM), CAM, backend="reference").rgb
-    assert (after - image).square().sum() < 0.95 * (before - image).square().sum()
-
-
-def test_grown_model_trains_saves_and_resumes_exactly(tmp_path):
-    from splatzoo.data.synthetic import make_synthetic_scene
-    from splatzoo.runs import train
-    from splatzoo.training import TrainConfig
-
-    data = make_synthetic_scene("sweater", tmp_path / "sweater", views=6, width=32, height=32)
-    cfg = TrainConfig(iterations=60, num_primitives=150, densify=False, log_every=10, eval_every=60,
-                      checkpoint_minutes=0)
-    options = {"grow_waves": True, "prune_waves": 0.002}
-    full = train(data, "gabor", options, cfg, tmp_path / "full", progress=False, evaluate_at_end=False)
-    log = [json.loads(line) for line in (tmp_path / "full" / "train_log.jsonl").read_text().splitlines()]
-    fractions = [r["wave_fraction"] for r in log if "wave_fraction" in r]
-    assert fractions[0] < 0.1 and max(fractions) > 1.5 * fractions[0]  # starts wave-less, grows in steps
-    part = train(data, "gabor", options, cfg, tmp_path / "part", progress=False, evaluate_at_end=False,
-                 stop_after=33)
-    resumed = train(data, "gabor", options, None, tmp_path / "part", resume=True, progress=False,
-                    evaluate_at_end=False)
-    a, b = full.model.state_dict(), resumed.model.state_dict()
-    for k in a:
-        assert torch.equal(a[k], b[k]), k
-    assert torch.equal(full.model.wave_counts, resumed.model.wave_counts)
-    back = splatzoo.load_model(tmp_path / "full" / "model.pt")
-    assert torch.equal(render(back, "cpu").rgb, render(full.model.cpu(), "cpu").rgb)
-    del part
 
 
 # ---- view-dependent colour --------------------------------------------------------------------------------------

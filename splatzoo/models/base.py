@@ -146,18 +146,6 @@ class SplatModel(nn.Module):
         parameters (see swap_parameter). No-op by default."""
         return None
 
-    def wants_probe(self, step: int, train_config: Any) -> bool:
-        """Whether the trainer should, after this step, render a few training views with `probe_surfels` and pass
-        the summed gradient of 1/2 |render - image|^2 with respect to its leaf to `grow` (e.g. to add waves where
-        the residual asks for them). Never, by default."""
-        return False
-
-    def probe_surfels(self, camera: Camera) -> tuple[Surfels, torch.Tensor]:
-        raise NotImplementedError
-
-    def grow(self, probe_grads: torch.Tensor, optimizer: torch.optim.Optimizer | None = None) -> dict:
-        raise NotImplementedError
-
     @classmethod
     def from_points(cls, config, points: torch.Tensor, colors: torch.Tensor, *, seed: int = 0) -> "SplatModel":
         points = torch.as_tensor(points, dtype=torch.float32)

@@ -43,12 +43,6 @@ INIT_OFFSET = 0.05  # init="surfel": half the colour difference cA - cB, per cha
 # color_param="residual": the base colour's rate is 2DGS's (2.5e-3 on its SH DC coefficient, in colour units x SH_C0)
 BASE_COLOR_LR = 2.5e-3 * SH_C0
 PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
-# grow_waves: the probe bank (frequencies in cycles per sigma, at every slot orientation, in cosine and sine phase),
-# the share of the surfels with a free slot that gain one wave per growth step, and a new wave's amplitude
-PROBE_FREQS = (0.5, 1.0, 2.0)
-GROW_SHARE = 0.3
-GROW_AMPLITUDE = 0.02
-GROW_FROM = 0.1  # growth runs from this fraction of the run until prune_from
 
 
 @dataclass
@@ -71,10 +65,6 @@ class GaborConfig:
         "help": "the start of --color-param paper: paper (the public release's: cA = point colour, cB = 0, weights "
                 "0.1 U(0,1), a dark start) or surfel (the 2DGS surfel it would be: weights 1/N, cA and cB the point "
                 "colour +- a small offset); see BENCHMARKS.md"})
-    grow_waves: bool = field(default=False, metadata={
-        "help": "adaptive waves that also grow: every surfel starts wave-less (a 2DGS surfel) and, until "
-                "--prune-from, the surfels whose training residual correlates most with a wave gain that wave "
-                "(orientation, frequency and phase from a probe render); with --color-param residual"})
     prune_from: float = field(default=0.5, metadata={
         "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow; "
                 "with densification on, pruning also waits until the last opacity reset has recovered)"})
@@ -93,8 +83,6 @@ class GaborConfig:
             raise ShapeError(f"prune_waves must be >= 0 (0: off), got {self.prune_waves}")
         if not float(self.prune_relative) >= 0:
             raise ShapeError(f"prune_relative must be >= 0 (0: off), got {self.prune_relative}")
-        if self.grow_waves and self.color_param != "residual":
-            raise ShapeError("grow_waves needs color_param=residual (a wave-less surfel's colour is then its base)")
         if float(self.prune_waves) > 0 and float(self.prune_relative) > 0:
             raise ShapeError("give one pruning threshold: prune_waves (fixed, colour units) or prune_relative "
                              "(a fraction of the training error), not both")
@@ -148,8 +136,7 @@ class GaborModel(SurfelModel):
 
     @property
     def adaptive(self) -> bool:
-        c = self.config
-        return float(c.prune_waves) > 0 or float(c.prune_relative) > 0 or bool(c.grow_waves)
+        return float(self.config.prune_waves) > 0 or float(self.config.prune_relative) > 0
 
     @property
     def residual(self) -> bool:
@@ -177,10 +164,6 @@ class GaborModel(SurfelModel):
             self.color_base.copy_(colors)
             self.color_diff.copy_(colors / 2)
             self.wave_weights.copy_(0.1 * torch.rand(n, k, generator=generator))
-            if self.config.grow_waves:  # wave-less (unused slots zero, as stored): waves come from growth
-                for t in (self.color_diff, self.wave_weights, self.wave_freqs, self.wave_phases, self.wave_counts):
-                    t.zero_()
-                return
         elif self.config.init == "paper":
             self.color_a.copy_(colors)
             self.color_b.zero_()
@@ -257,7 +240,7 @@ class GaborModel(SurfelModel):
         """Prune at the densification cadence once `prune_from` of the run has passed (and, with densification on,
         once opacity has recovered from the last reset: right after a reset every wave looks faint). The threshold
         ramps up from 0 over most of the remaining run: a wave still growing is not cut for being small early."""
-        if not self.adaptive or float(self.config.prune_waves) + float(self.config.prune_relative) == 0:
+        if not self.adaptive:
             return None
         cfg = train_config
         first = float(self.config.prune_from) * cfg.iterations
@@ -345,117 +328,6 @@ class GaborModel(SurfelModel):
         self.wave_index = pack(self.wave_index)
         self.wave_counts = counts.to(torch.int32)
         return {"removed": n_removed, "active": int(counts.sum())}
-
-    # --- growing waves ----------------------------------------------------------------------------------------
-    def wants_probe(self, step: int, train_config) -> bool:
-        """grow_waves: a growth step every 1/20 of the run, from GROW_FROM of it until prune_from."""
-        if not self.config.grow_waves:
-            return False
-        n = train_config.iterations
-        every = max(n // 20, 10)
-        return GROW_FROM * n <= step <= float(self.config.prune_from) * n and step % every == 0
-
-    def probe_bank(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(orientation index [P], wave vectors [P,2], phases [P]) of the probe waves: every slot orientation x
-        PROBE_FREQS x the phases 0 and pi/2 (cos and -sin), in that nesting order."""
-        k, f = int(self.config.n_waves), len(PROBE_FREQS)
-        orientation = torch.arange(k).repeat_interleave(2 * f)
-        freqs = torch.tensor(PROBE_FREQS).repeat_interleave(2).repeat(k)
-        phases = torch.tensor([0.0, math.pi / 2]).repeat(k * f)
-        vectors = 2 * math.pi * freqs[:, None] * self.directions.cpu()[orientation]
-        return orientation, vectors, phases
-
-    def probe_surfels(self, camera: Camera) -> tuple[Surfels, torch.Tensor]:
-        """The model's surfels (detached, rendering exactly as the model does) with the probe bank appended at zero
-        amplitude, and the probe amplitudes [N,P,3] as a leaf: the gradient of 1/2 |render - image|^2 with respect
-        to them is minus each probe wave's correlation with the residual, as the surfel shows it."""
-        with torch.no_grad():
-            s = self.surfels(camera)
-        n, width = s.wave_vectors.shape[:2]
-        counts = s.wave_counts if s.wave_counts is not None else torch.full((n,), width, device=s.means.device)
-        live = torch.arange(width, device=s.means.device)[None] < counts[:, None]
-        amplitudes = torch.where(live[..., None], s.wave_amplitudes, torch.zeros_like(s.wave_amplitudes))
-        _, vectors, phases = self.probe_bank()
-        vectors, phases = vectors.to(s.wave_vectors), phases.to(s.wave_phases)
-        leaf = torch.zeros(n, vectors.shape[0], 3, dtype=amplitudes.dtype, device=amplitudes.device,
-                           requires_grad=True)
-        probe = Surfels(s.means, s.quats, s.scales, s.opacities, s.base_color,
-                        torch.cat([s.wave_vectors, vectors.expand(n, -1, -1)], 1),
-                        torch.cat([s.wave_phases, phases.expand(n, -1)], 1), torch.cat([amplitudes, leaf], 1))
-        return probe, leaf
-
-    def _widen(self, optimizer) -> None:
-        """Stored wave width back to n_waves (pruning trims it), new slots zero."""
-        k, width = int(self.config.n_waves), self.wave_weights.shape[1]
-        if width >= k:
-            return
-
-        def pad(t):
-            return torch.nn.functional.pad(t, (0, k - width))
-
-        for name in self.wave_parameter_names:
-            self.swap_parameter(name, pad, optimizer)
-        self.wave_index = pad(self.wave_index)
-
-    @torch.no_grad()
-    def grow(self, probe_grads: torch.Tensor, optimizer=None) -> dict:
-        """One growth step from probe_grads [N,P,3] (probe_surfels' leaf gradient, summed over views): every surfel
-        scores its best free orientation and probe frequency by how much of the residual the wave would explain
-        (the squared gradient along its colour difference d, or for a wave-less surfel along the best colour), and
-        the top GROW_SHARE of the surfels with a free slot gain that wave at amplitude GROW_AMPLITUDE, its phase
-        and colour set to reduce the residual. Returns counts."""
-        k, f = int(self.config.n_waves), len(PROBE_FREQS)
-        n = self.wave_counts.shape[0]
-        g = probe_grads.to(self.color_diff).reshape(n, k, f, 2, 3)  # surfel, orientation, frequency, (cos, -sin), rgb
-        d = self.color_diff.detach()
-        unit = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        waved = self.wave_counts > 0
-        along = (g * unit[:, None, None, None]).sum(-1)  # [n,k,f,2]
-        energy = torch.where(waved[:, None, None], (along ** 2).sum(-1),
-                             torch.linalg.matrix_norm(g, ord=2) ** 2)  # wave-less: the best colour direction
-        # orientations in use (one-hot: unused slots hold index 0 too and must not unmark it)
-        used = (torch.nn.functional.one_hot(self.wave_index.long(), k).bool() & self.active_slots()[..., None]).any(1)
-        energy = energy.masked_fill(used[..., None], -1.0)
-        best, where = energy.flatten(1).max(1)
-        candidates = best > 0
-        m = int(GROW_SHARE * int(candidates.sum()))
-        if m == 0:
-            return {"grown": 0, "active": int(self.wave_counts.sum())}
-        rows = torch.topk(torch.where(candidates, best, torch.full_like(best, -2.0)), m).indices
-        orientation, freq = where[rows] // f, where[rows] % f
-        gm = g[rows, orientation, freq]  # [m,2,3]
-        # a wave w d cos(k.x + phi) = w d (cos(phi) probe_cos + sin(phi) probe_sin): descend along -gm
-        colour = unit[rows]
-        fresh = ~waved[rows]
-        if bool(fresh.any()):
-            u, _, vh = torch.linalg.svd(gm[fresh].transpose(1, 2))  # [3,2] = u s v^T
-            colour[fresh] = -u[:, :, 0]
-        coeff = -(gm * colour[:, None]).sum(-1)  # [m,2]: (cos phi, sin phi) x amplitude
-        phase = torch.atan2(coeff[:, 1], coeff[:, 0])
-        self._widen(optimizer)
-        slot = self.wave_counts[rows].long()
-        weight = torch.where(fresh, torch.full_like(phase, 0.1), GROW_AMPLITUDE / d[rows].norm(dim=1).clamp_min(1e-6))
-        diff = torch.where(fresh[:, None], colour * (GROW_AMPLITUDE / 0.1), d[rows])
-        values = {"wave_weights": weight, "wave_freqs": torch.tensor(PROBE_FREQS).to(phase)[freq],
-                  "wave_phases": phase}
-        for name in self.wave_parameter_names:
-            p = getattr(self, name)
-            p[rows, slot] = values[name]
-            state = optimizer.state.get(p) if optimizer is not None else None
-            for key in ("exp_avg", "exp_avg_sq"):
-                if state and key in state:
-                    state[key][rows, slot] = 0
-        self.set_rows("color_diff", rows[fresh], diff[fresh], optimizer)
-        self.wave_index[rows, slot] = orientation.to(self.wave_index.dtype)
-        self.wave_counts[rows] += 1
-        # keep each row's active waves in orientation order, as pruning and the packed checkpoint do
-        width = self.wave_weights.shape[1]
-        key = torch.where(self.active_slots(), self.wave_index.long(), k + torch.arange(width, device=g.device))
-        order = torch.sort(key, dim=1, stable=True).indices
-        for name in self.wave_parameter_names:
-            self.swap_parameter(name, lambda t: t.gather(1, order), optimizer)
-        self.wave_index = self.wave_index.gather(1, order)
-        return {"grown": m, "active": int(self.wave_counts.sum())}
 
     def summary(self) -> dict:
         n, k = self.wave_weights.shape[0], int(self.config.n_waves)

@@ -22,7 +22,6 @@ from .losses import distortion_loss, normal_consistency_loss, photometric_loss
 REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many iterations and scaled to the run
 PIXELS_PER_SURFEL = 128       # default densification budget: one surfel per this many training pixels
 MAX_GROWTH = 0.5              # one densification step adds at most this fraction of the current count
-PROBE_VIEWS = 2                # training views a model's probe (SplatModel.wants_probe) renders
 STRATEGIES = ("adc", "mcmc")   # densification strategies (TrainConfig.strategy)
 ERROR_AVERAGE = 0.01          # the model's recent_error: an exponential average over about 1/this many steps
 
@@ -199,34 +198,18 @@ class Trainer:
                 "train_seconds": self.train_seconds, "view_order": list(self.view_order),
                 "recent_error": self.net.recent_error}
 
-    def _target(self, view, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """(image, background) a view is trained against at this step."""
+    def _loss(self, view, step: int):
+        cfg = self.cfg
+        cam = view.camera.to(self.device, torch.float32)
         if self.random_background:
             # a colour of its own for each (step, view): the same on every rank and after a resume, and drawn
             # without touching the generator that orders the views
             seed = (self.cfg.seed * 1_000_003 + step) * 65_537 + self.view_index.get(id(view), 0)
             bg = torch.rand(3, generator=torch.Generator().manual_seed(seed))
-            return view.image_float(background=bg).to(self.device), bg.to(self.device)
-        return view.image_float().to(self.device), self.background
-
-    def _probe_and_grow(self, step: int) -> dict:
-        """The model asked for a probe (SplatModel.wants_probe): PROBE_VIEWS training views drawn by the run's
-        generator, each rendered with the probe surfels; the summed gradient goes to the model's grow."""
-        grads = None
-        for _ in range(PROBE_VIEWS):
-            view = self.scene.train[int(torch.randint(len(self.scene.train), (1,), generator=self.gen))]
-            cam = view.camera.to(self.device, torch.float32)
-            target, bg = self._target(view, step)
-            surfels, leaf = self.net.probe_surfels(cam)
-            render = rasterize(surfels, cam, backend=self.backend, background=bg, settings=self.net.raster_settings)
-            (0.5 * (render.rgb - target).square().sum()).backward()
-            grads = leaf.grad if grads is None else grads + leaf.grad
-        return self.net.grow(grads, self.optimizer)
-
-    def _loss(self, view, step: int):
-        cfg = self.cfg
-        cam = view.camera.to(self.device, torch.float32)
-        target, bg = self._target(view, step)
+            target = view.image_float(background=bg).to(self.device)
+            bg = bg.to(self.device)
+        else:
+            target, bg = view.image_float().to(self.device), self.background
         render = rasterize(self.net.surfels(cam), cam, backend=self.backend, background=bg,
                            settings=self.net.raster_settings)
         l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
@@ -316,8 +299,6 @@ class Trainer:
                                   max_primitives=self.budget, max_growth=MAX_GROWTH)
             if step % self.reset_every == 0:
                 reset_opacity(net, optimizer)
-        if net.wants_probe(step, cfg):  # e.g. growing waves where the residual asks for them
-            self._probe_and_grow(step)
         net.on_step(step, cfg, optimizer)  # model-specific edits (e.g. adaptive waves); no-op by default
         self.train_seconds += time.perf_counter() - t0
         self.iteration = step
