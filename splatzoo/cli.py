@@ -367,6 +367,8 @@ def compare_command(
     quick: bool = typer.Option(False, "--quick", help="small scene and short schedule: a few minutes on 2 cores"),
     equal_bytes: bool = typer.Option(False, "--equal-bytes", help="equal model size instead of equal count: the most "
                                      "compact model gets --num-primitives, each other as many as fit in its bytes"),
+    antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render every model with the "
+                                   "pixel-footprint filter"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other "
                                    "settings (without it they are an error; runs with the same settings are reused)"),
@@ -384,6 +386,7 @@ def compare_command(
 
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
             seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite, equal_bytes=equal_bytes,
+            antialias=antialias,
             scene_options=_scene_options(resolution, max_width, test_every, background, white_background))
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")

@@ -64,11 +64,13 @@ def parse_model_arg(arg: str) -> ModelChoice:
 def compare(models: list[str], data=None, out="runs/compare", *, iterations: int | None = None,
             num_primitives: int | None = None, densify: bool = False, quick: bool = False, seed: int = 0,
             backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
-            synthetic_scene: str | None = None, overwrite: bool = False, equal_bytes: bool = False) -> dict:
+            synthetic_scene: str | None = None, overwrite: bool = False, equal_bytes: bool = False,
+            antialias: bool = False) -> dict:
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
     synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the bytes of
-    the most compact model at `num_primitives`: each model gets as many primitives as fit in them. Runs in out/runs/<label> made with the same settings are reused (finished) or
+    the most compact model at `num_primitives`: each model gets as many primitives as fit in them. `antialias`
+    trains and renders every model with the pixel-footprint filter. Runs in out/runs/<label> made with the same settings are reused (finished) or
     resumed (interrupted); made with other settings, they are an error, or retrained with `overwrite`."""
     from .data import load_scene
     from .zoo import make_config
@@ -89,7 +91,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     iterations = iterations or (preset.iterations if preset else 30000)
     num_primitives = num_primitives or (preset.num_primitives if preset else None)
     base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, seed=seed,
-                           backend=backend).validate()
+                           backend=backend, antialias=antialias).validate()
     counts = {c.label: num_primitives for c in choices}
     if equal_bytes:
         if densify or not num_primitives:
@@ -116,6 +118,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     runs, settings = {}, {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
                           "num_primitives": num_primitives, "densify": densify, "seed": seed, "backend": backend,
                           "scene_options": scene_options, "models": labels, "equal_bytes": equal_bytes,
+                          "antialias": antialias,
                           "primitives": counts,
                           "train_views": len(scene.train), "test_views": len(scene.test)}
     for c in choices:
@@ -192,7 +195,8 @@ def report_markdown(report: dict) -> str:
         f"# splatzoo compare: {', '.join(labels)}", "",
         f"Scene `{s['scene']}` ({s['train_views']} train / {s['test_views']} test views), {s['iterations']} iterations, "
         f"{'densification on' if s['densify'] else 'densification off'}, "
-        f"{budget}, seed {s['seed']}, backend `{s['backend']}`.", "",
+        f"{budget}, seed {s['seed']}, backend `{s['backend']}`"
+        f"{', anti-aliased (pixel-footprint filter)' if s.get('antialias') else ''}.", "",
         "| model | SSIM ↑ | PSNR ↑ | LPIPS ↓ | FPS | train s | size MB | primitives |",
         "|---|---|---|---|---|---|---|---|",
     ]

@@ -137,6 +137,13 @@ def test_compare_at_equal_bytes(tiny_data, tmp_path):
     assert "equal bytes" in (out / "report.md").read_text() and "equal bytes" in r.output
     r = runner.invoke(app, base)
     assert r.exit_code != 0 and "num_primitives" in str(r.exception)
+    r = runner.invoke(app, base + ["--equal-bytes", "--antialias"])  # another setting too: no silent reuse
+    assert r.exit_code != 0 and "antialias" in str(r.exception)
+    r = runner.invoke(app, base + ["--equal-bytes", "--antialias", "--overwrite"])
+    assert r.exit_code == 0, r.output
+    report = json.loads((out / "compare.json").read_text())
+    assert report["settings"]["antialias"] and "anti-aliased" in (out / "report.md").read_text()
+    assert json.loads((out / "runs" / "gabor" / "config.json").read_text())["train"]["antialias"] is True
     r = runner.invoke(app, base + ["--equal-bytes", "--densify"])
     assert r.exit_code != 0 and "fixed primitive counts" in str(r.exception)
 
