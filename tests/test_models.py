@@ -146,3 +146,21 @@ def test_gabor_surfel_init_starts_as_the_2dgs_surfel():
     assert s.wave_amplitudes.abs().max() <= INIT_OFFSET / 4 + 1e-7 and s.wave_amplitudes.abs().max() > 0
     paper = splatzoo.create_model("gabor", pts, cols, n_waves=4, color_param="paper").surfels(cam)
     assert paper.base_color.max() < 0.25  # the release's dark start: (sum w)(cA + cB)/2 with sum w ~ 0.2
+
+
+def test_files_from_before_color_param_mean_the_paper_model():
+    """Configs recorded before an option existed are read with what they meant (stored_defaults), not today's
+    default: a gabor checkpoint, PLY header or run record without color_param is the paper's parametrisation."""
+    from splatzoo.zoo import model_from_checkpoint, stored_config
+
+    assert stored_config("gabor", {"n_waves": 4}) == {"color_param": "paper", "n_waves": 4}
+    assert stored_config("gabor", {"color_param": "residual"})["color_param"] == "residual"
+    assert stored_config("2dgs", {"sh_degree": 1}) == {"sh_degree": 1}
+    assert stored_config("no-such-model", {"x": 1}) == {"x": 1}  # the caller reports the unknown name
+    pts, cols = point_cloud(7)
+    paper = splatzoo.create_model("gabor", pts, cols, color_param="paper")
+    ck = paper.checkpoint()
+    del ck["config"]["color_param"]
+    back = model_from_checkpoint(ck)
+    assert back.config.color_param == "paper"
+    assert torch.equal(back.surfels(CAM).base_color, paper.surfels(CAM).base_color)
