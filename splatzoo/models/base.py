@@ -44,8 +44,9 @@ class SplatModel(nn.Module):
     # names of buffers with one row per primitive (e.g. per-surfel wave counts): densification and loading edit
     # them with the parameters; they are not trained
     primitive_buffers: tuple[str, ...] = ()
-    # the mean absolute colour error of the recent training steps (an exponential average over about 100 steps, in
-    # colour units for images in [0,1]), set by the trainer before each on_step; None outside training
+    # the mean absolute colour error of the recent training steps over the pixels the surfels cover (alpha > 1/2;
+    # an exponential average over about 100 steps, colour units for images in [0,1]), set by the trainer before each
+    # on_step; None outside training
     recent_error: float | None = None
 
     def __init__(self, config: Any, num_primitives: int = 0):

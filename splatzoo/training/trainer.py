@@ -228,8 +228,8 @@ class Trainer:
     def _backward(self, views: list, step: int, track: bool):
         """Sum of the views' gradients, divided by the step's view count (over all ranks) once summed over ranks.
         Each view's own gradient feeds the densification statistics, as with one view per step. Also returns the
-        step's mean absolute colour error over all views of all ranks (summed with the gradients: every rank sees
-        the same value)."""
+        step's mean absolute colour error over the covered pixels, averaged over all views of all ranks (summed with
+        the gradients: every rank sees the same value)."""
         params = [p for g in self.optimizer.param_groups for p in g["params"]]
         total = {}
         losses, photos = [], []
@@ -246,7 +246,10 @@ class Trainer:
                     total[p] = p.grad if p not in total else total[p] + p.grad
             losses.append(loss.detach())
             photos.append(l_photo.detach())
-            error += (render.rgb.detach() - target).abs().mean()
+            # where the surfels are (alpha over 1/2): an empty backdrop would dilute the error by the image's share of
+            # it, so an object filling a quarter of the frame would seem fitted 4x better than it is
+            covered = (render.alpha.detach() > 0.5)[..., None]
+            error += ((render.rgb.detach() - target).abs() * covered).sum() / (3 * covered.sum()).clamp_min(1)
         grads = [total.setdefault(p, torch.zeros_like(p)) for p in params]
         self.comm.sum_(grads + [error])
         n = self.cfg.views_per_step
