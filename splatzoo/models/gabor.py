@@ -59,8 +59,8 @@ class GaborConfig:
                 "wave over its surfel, colour units for images in [0,1]) is below this, e.g. 0.01; 0 keeps every wave"})
     prune_relative: float = field(default=0.0, metadata={
         "help": "adaptive waves with a threshold relative to the fit: remove waves whose visible contribution is "
-                "below this fraction of the recent mean absolute training error, e.g. 0.25 (a scene fitted to 40 dB "
-                "keeps fainter waves than one at 25 dB); instead of --prune-waves"})
+                "below this multiple of the recent mean absolute training error on the covered pixels, e.g. 2 (a "
+                "scene fitted to 40 dB keeps fainter waves than one at 25 dB); instead of --prune-waves"})
     init: str = field(default="paper", metadata={
         "help": "the start of --color-param paper: paper (the public release's: cA = point colour, cB = 0, weights "
                 "0.1 U(0,1), a dark start) or surfel (the 2DGS surfel it would be: weights 1/N, cA and cB the point "
