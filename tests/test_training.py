@@ -46,7 +46,11 @@ def test_training_raises_test_psnr(tiny_data, tmp_path):
 
     pts, cols = select_initial_points(scene.points, scene.colors, 300, 3)
     initial = test_psnr(create_model("gabor", pts, cols, seed=3), scene, result.metrics["backend"])
-    assert m["psnr"] > initial + 3.0, (initial, m["psnr"])
+    # the untrained model already shows each point's colour (the residual start): 150 steps add about 2 dB here
+    assert m["psnr"] > initial + 1.5, (initial, m["psnr"])
+    paper_start = test_psnr(create_model("gabor", pts, cols, seed=3, color_param="paper"), scene,
+                            result.metrics["backend"])
+    assert initial > paper_start + 1.5, (initial, paper_start)  # the paper's start is dark
     assert (tmp_path / "run" / "renders" / "test").is_dir()
     cfg = json.loads((tmp_path / "run" / "config.json").read_text())
     assert cfg["model_config"]["n_waves"] == 4 and cfg["train"]["iterations"] == 150
