@@ -170,8 +170,8 @@ _WHITE = typer.Option(False, "--white-background", hidden=True, help="the same a
 _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, reference, cpu or cuda")
 
 
-_TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "num_primitives", "max_primitives", "lambda_dist",
-                 "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc", "antialias")
+_TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "num_primitives", "max_primitives",
+                 "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc", "antialias")
 
 
 def _given(ctx: typer.Context) -> set[str]:

@@ -70,8 +70,9 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
     synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the bytes of
     the most compact model at `num_primitives`: each model gets as many primitives as fit in them. `antialias`
-    trains and renders every model with the pixel-footprint filter. Runs in out/runs/<label> made with the same settings are reused (finished) or
-    resumed (interrupted); made with other settings, they are an error, or retrained with `overwrite`."""
+    trains and renders every model with the pixel-footprint filter. Runs in out/runs/<label> made with the same
+    settings are reused (finished) or resumed (interrupted); made with other settings, they are an error, or
+    retrained with `overwrite`."""
     from .data import load_scene
     from .zoo import make_config
 
@@ -118,15 +119,15 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     runs, settings = {}, {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
                           "num_primitives": num_primitives, "densify": densify, "seed": seed, "backend": backend,
                           "scene_options": scene_options, "models": labels, "equal_bytes": equal_bytes,
-                          "antialias": antialias,
-                          "primitives": counts,
+                          "antialias": antialias, "primitives": counts,
                           "train_views": len(scene.train), "test_views": len(scene.test)}
     for c in choices:
         run, status = plan[c.label]
         if status == "finished":  # trained earlier with these settings: reuse
             runs[c.label] = run.metrics() or evaluate_run(run.path, backend=backend)
         else:
-            result = train(scene, c.model, c.options, cfgs[c.label], run.path, resume=status in ("started", "interrupted"),
+            result = train(scene, c.model, c.options, cfgs[c.label], run.path,
+                           resume=status in ("started", "interrupted"),
                            overwrite=status == "overwrite", progress=progress, scene_options=scene_options,
                            command="splatzoo compare")
             runs[c.label] = result.metrics

@@ -8,7 +8,7 @@ One vertex per primitive, float32 properties, little endian:
   opacity                      logit
   scale_0, scale_1             log sigma (2DGS: two scales)
   rot_0..3                     quaternion (w, x, y, z), unnormalised as trained
-  gabor_color_base_0..2, gabor_color_diff_0..2 (or, for --colors paper, gabor_color_a_0..2, gabor_color_b_0..2),
+  gabor_color_base_0..2, gabor_color_diff_0..2 (or, for --color-param paper, gabor_color_a_0..2, gabor_color_b_0..2),
   gabor_weight_*, gabor_freq_*, gabor_phase_*   Gabor-family colour and waves
   <param>_<i>                  any other per-primitive parameter of a plugin, flattened row-major
 Header comments name the splatzoo model and its config (`comment splatzoo model gabor`,

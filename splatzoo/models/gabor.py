@@ -1,7 +1,7 @@
 """3D Gabor surfels (the paper) and its ablation baselines A, B, C.
 
-Colour inside a surfel with N waves at fixed orientations theta_i, t_i = 2 pi f_i (cos theta_i, sin theta_i).(u,v) + phi_i
-(f in cycles per sigma), in one of two parametrisations (`color_param`):
+Colour inside a surfel with N waves at fixed orientations theta_i,
+t_i = 2 pi f_i (cos theta_i, sin theta_i).(u,v) + phi_i (f in cycles per sigma), in one of two parametrisations (`color_param`):
 - "residual" (default): c(u,v) = c0 + sum_i w_i d cos t_i. The base colour c0 is a 2DGS surfel's colour and moves at
   2DGS's pace; the waves share one colour difference d and are a residual around c0. A surfel whose waves have died
   out is exactly a 2DGS surfel, so on plain colour gabor trains as 2DGS does.
@@ -194,21 +194,21 @@ class GaborModel(SurfelModel):
     def surfels(self, camera: Camera) -> Surfels:
         g = self.geometry()
         w = self.wave_weights
+        if self.adaptive:
+            directions = self.directions.to(w)[self.wave_index]  # [N,width,2]: each slot's own orientation
+            counts = self.wave_counts
+        else:
+            directions, counts = self.directions.to(w), None
         if self.residual:
             base = self.color_base
-            directions = self.directions.to(w)[self.wave_index] if self.adaptive else self.directions.to(w)
-            counts = self.wave_counts if self.adaptive else None
         elif self.adaptive:
             # written so that, before any pruning (all slots active, folded weights 0), every operation rounds as
             # in gabor-K's expression below: the two runs stay bit-identical until the first pruning
             base = (w * self.active_slots()).sum(1, keepdim=True) * (self.color_a + self.color_b) / 2
             base = base + self.folded_weights[:, :1] * self.color_a + self.folded_weights[:, 1:] * self.color_b
             base = torch.where((self.wave_counts == 0)[:, None], self.color_a, base)  # wave-less: a 2DGS surfel
-            directions = self.directions.to(w)[self.wave_index]  # [N,width,2]: each slot's own orientation
-            counts = self.wave_counts
         else:
             base = w.sum(1, keepdim=True) * (self.color_a + self.color_b) / 2
-            directions, counts = self.directions.to(w), None
         if self.config.sh_degree > 0:
             # bands >= 1 only: the DC term is the Gabor base colour itself
             coeffs = torch.cat([self.sh_rest.new_zeros(self.sh_rest.shape[0], 1, 3), self.sh_rest], 1)
@@ -221,10 +221,10 @@ class GaborModel(SurfelModel):
     def optim_groups(self, scene_extent: float) -> list[dict]:
         if self.residual:
             color_groups = [{"name": "color_base", "params": [self.color_base], "lr": BASE_COLOR_LR},
-                      {"name": "color_diff", "params": [self.color_diff], "lr": 2.5e-3}]
+                            {"name": "color_diff", "params": [self.color_diff], "lr": 2.5e-3}]
         else:
             color_groups = [{"name": "color_a", "params": [self.color_a], "lr": 2.5e-3},
-                      {"name": "color_b", "params": [self.color_b], "lr": 2.5e-3}]
+                            {"name": "color_b", "params": [self.color_b], "lr": 2.5e-3}]
         groups = self.geometry_groups(scene_extent) + color_groups + [
             {"name": "wave_weights", "params": [self.wave_weights], "lr": 1e-3},
             {"name": "wave_freqs", "params": [self.wave_freqs], "lr": 1e-3},
@@ -313,9 +313,10 @@ class GaborModel(SurfelModel):
             t = t.gather(1, order)[:, :new_width]
             return torch.where(live, t, torch.zeros_like(t))
 
-        # surfels losing their last wave (every weight is now folded): keep the colour fa cA + fb cB in color_a alone
+        # surfels losing their last wave (every weight is now folded): "residual" drops d (the base holds the
+        # colour already); "paper" keeps the colour fa cA + fb cB in color_a alone
         emptied = (counts == 0) & (self.wave_counts > 0)
-        if self.residual and bool(emptied.any()):
+        if bool(emptied.any()) and self.residual:
             self.set_rows("color_diff", emptied, 0.0, optimizer)
         elif bool(emptied.any()):
             fa, fb = self.folded_weights[emptied].unbind(1)
