@@ -3,7 +3,8 @@
 // Each (surfel, tile) pair is handled in two phases:
 //   1. eval_rows: alpha (and u, v, z) of the surfel at every pixel of the rows its box covers, a pure float loop
 //      that vectorises across pixels (no integer counters or early exits in it);
-//   2. a scalar pass over the pixels with alpha > 0 that blends (forward) or back-propagates (backward).
+//   2. a scalar pass over the pixels with alpha > 0 that blends (forward) or back-propagates (backward); the
+//      anti-aliased backward reads the footprint's per-pixel values from phase 1 (the plain one recomputes its few).
 // Forward and backward call the same non-inlined eval_rows, so both see bit-identical alphas and agree on which
 // pairs contributed. Per-surfel gradients are written per (surfel, tile) pair into a scratch row and summed per
 // surfel at the end: no atomics, and the result does not depend on the thread count.
@@ -27,49 +28,79 @@ struct TileScratch {
     alignas(64) S u[TILE_PIXELS];
     alignas(64) S v[TILE_PIXELS];
     alignas(64) S z[TILE_PIXELS];
-    alignas(64) S blur[3][TILE_PIXELS];  // anti-aliased only: the colour's blur (PairEval::blur)
+    // the anti-aliased backward's per-pixel footprint values (PairEval)
+    alignas(64) S ex[TILE_PIXELS], inv[TILE_PIXELS], xu[TILE_PIXELS], xv[TILE_PIXELS];
+    alignas(64) S j00[TILE_PIXELS], j01[TILE_PIXELS], j10[TILE_PIXELS], j11[TILE_PIXELS];
+    alignas(64) S p00[TILE_PIXELS], p01[TILE_PIXELS], p11[TILE_PIXELS], idet[TILE_PIXELS];
 };
 
-// Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z (and, anti-aliased, the blur) per pixel.
-template <bool FILTERED, class S>
+// Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z per pixel (KEEP: and the footprint values
+// the anti-aliased backward needs).
+template <bool FILTERED, bool KEEP, class S>
 __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Geom<S>& g, const S* xs, S y0, int r0,
                                               int r1, TileScratch<S>& sc) {
-    S* alpha = sc.alpha;
-    S *us = sc.u, *vs = sc.v, *zs = sc.z;
     const Geom<S> gl = g;  // local copies let the compiler keep every field in a register
     const Settings st = settings;
     for (int r = r0; r <= r1; ++r) {
         const S y = y0 + S(r);
-        S* al = alpha + r * TILE;
-        S* ur = us + r * TILE;
-        S* vr = vs + r * TILE;
-        S* zr = zs + r * TILE;
-        S *b0 = sc.blur[0] + r * TILE, *b1 = sc.blur[1] + r * TILE, *b2 = sc.blur[2] + r * TILE;
+        const int o = r * TILE;
 #pragma omp simd
         for (int c = 0; c < TILE; ++c) {
             PairEval<S> e;
-            if constexpr (FILTERED) {
+            if constexpr (FILTERED)
                 eval_pair_filtered(st, gl, xs[c], y, e);
-                b0[c] = e.blur[0];
-                b1[c] = e.blur[1];
-                b2[c] = e.blur[2];
-            } else {
+            else
                 eval_pair(st, gl, xs[c], y, e);
+            sc.alpha[o + c] = e.alpha;
+            sc.u[o + c] = e.u;
+            sc.v[o + c] = e.v;
+            sc.z[o + c] = e.z;
+            if constexpr (KEEP) {
+                sc.ex[o + c] = e.ex;
+                sc.inv[o + c] = e.inv;
+                sc.xu[o + c] = e.xu;
+                sc.xv[o + c] = e.xv;
+                sc.j00[o + c] = e.j00;
+                sc.j01[o + c] = e.j01;
+                sc.j10[o + c] = e.j10;
+                sc.j11[o + c] = e.j11;
+                sc.p00[o + c] = e.p00;
+                sc.p01[o + c] = e.p01;
+                sc.p11[o + c] = e.p11;
+                sc.idet[o + c] = e.idet;
             }
-            al[c] = e.alpha;
-            ur[c] = e.u;
-            vr[c] = e.v;
-            zr[c] = e.z;
         }
     }
 }
 
+// keep: the backward's call (anti-aliased, it keeps the footprint values).
 template <class S>
-void eval_rows(const Settings& st, const Geom<S>& g, const S* xs, S y0, int r0, int r1, TileScratch<S>& sc) {
-    if (st.pixel_filter > 0)
-        eval_rows_impl<true>(st, g, xs, y0, r0, r1, sc);
+void eval_rows(const Settings& st, const Geom<S>& g, const S* xs, S y0, int r0, int r1, TileScratch<S>& sc,
+               bool keep) {
+    if (st.pixel_filter > 0 && keep)
+        eval_rows_impl<true, true>(st, g, xs, y0, r0, r1, sc);
+    else if (st.pixel_filter > 0)
+        eval_rows_impl<true, false>(st, g, xs, y0, r0, r1, sc);
     else
-        eval_rows_impl<false>(st, g, xs, y0, r0, r1, sc);
+        eval_rows_impl<false, false>(st, g, xs, y0, r0, r1, sc);
+}
+
+// The anti-aliased pair at tile pixel p from the values eval_rows kept (exactly what eval_pair_filtered gives).
+template <class S>
+PairEval<S> kept_pair(const Geom<S>& g, const TileScratch<S>& sc, int p, S x, S y) {
+    PairEval<S> e;
+    e.dx = radd(x, -g.cx);
+    e.dy = radd(y, -g.cy);
+    e.inv = sc.inv[p];
+    e.u = sc.u[p]; e.v = sc.v[p]; e.z = sc.z[p];
+    e.ex = sc.ex[p];
+    e.raw = rmul(g.o, e.ex);
+    e.alpha = sc.alpha[p];
+    e.use3 = true;
+    e.xu = sc.xu[p]; e.xv = sc.xv[p];
+    e.j00 = sc.j00[p]; e.j01 = sc.j01[p]; e.j10 = sc.j10[p]; e.j11 = sc.j11[p];
+    e.p00 = sc.p00[p]; e.p01 = sc.p01[p]; e.p11 = sc.p11[p]; e.idet = sc.idet[p];
+    return e;
 }
 
 struct TileRect {
@@ -109,7 +140,7 @@ int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfe
 #pragma omp parallel for num_threads(threads) schedule(static)
     for (int r = 0; r < M; ++r) {
         const int64_t i = s.order[r];
-        prepare_geom(s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i],
+        prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i],
                      *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
         box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     }
@@ -154,6 +185,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
     {
         TileScratch<S> sc;
         std::vector<PixelFwd<S>> px(TILE_PIXELS);
+        std::vector<S> gains(std::max(s.K, 1));  // anti-aliased: the surfel's wave gains
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < nt; ++t) {
             const TileRect tr = tile_rect(t, W, H);
@@ -170,19 +202,22 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                 const int i = f.tile_list[pos];
                 int c0, c1, r0, r1;
                 if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
-                eval_rows(s.st, geom[i], sc.xs, y0, r0, r1, sc);
+                eval_rows(s.st, geom[i], sc.xs, y0, r0, r1, sc, false);
                 const SurfelColour<S> sf = surfel_colour(s, i);
+                if (filtered) wave_gains(geom[i], sf.wv, sf.K, gains.data());
+                const S* g = filtered ? gains.data() : nullptr;
                 const int rel = pos - start;
                 for (int r = r0; r <= r1; ++r)
                     for (int c = c0; c <= c1; ++c) {
                         const int p = r * TILE + c;
                         const S a = sc.alpha[p];
                         if (a == S(0) || px[p].done) continue;
-                        S col[3], pre[3], blur[3];
-                        if (filtered)
-                            for (int b = 0; b < 3; ++b) blur[b] = sc.blur[b][p];
-                        wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre,
-                                   filtered ? blur : nullptr);
+                        S col[3], pre[3];
+                        if (filtered)  // two calls: each inlined copy keeps its wave loop free of the other's test
+                            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre,
+                                       static_cast<const S*>(nullptr), g);
+                        else
+                            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre);
                         blend_forward(s.st, px[p], a, sc.z[p], col, sf.normal, rel);
                         active -= px[p].done;
                     }
@@ -200,10 +235,12 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
     const int GW = grad_width(K);
     const int nt = tiles_x(W) * tiles_y(H);
     const Geom<S>* geom = reinterpret_cast<const Geom<S>*>(f.geom);
+    const bool filtered = s.st.pixel_filter > 0;
 #pragma omp parallel num_threads(threads)
     {
         TileScratch<S> sc;
         std::vector<PixelBwd<S>> px(TILE_PIXELS);
+        std::vector<S> gains(std::max(K, 1));  // anti-aliased: the surfel's wave gains
         alignas(64) S local[LOCAL_GW];
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < nt; ++t) {
@@ -233,8 +270,10 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                     continue;
                 }
                 const Geom<S>& gm = geom[i];
-                eval_rows(s.st, gm, sc.xs, y0, r0, r1, sc);
+                eval_rows(s.st, gm, sc.xs, y0, r0, r1, sc, true);
                 const SurfelColour<S> sf = surfel_colour(s, i);
+                if (filtered) wave_gains(gm, sf.wv, sf.K, gains.data());
+                const S* g = filtered ? gains.data() : nullptr;
                 const int rel = pos - start;
                 auto pixels = [&](RowAcc<S>& acc) {
                     for (int r = r0; r <= r1; ++r)
@@ -243,13 +282,18 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                             const S a = sc.alpha[p];
                             if (a == S(0) || rel >= px[p].last) continue;
                             PairEval<S> e;
-                            eval_pair_any(s.st, gm, sc.xs[c], y0 + S(r), e);
-                            // the decision and the values blended come from eval_rows, exactly as in the forward
-                            e.alpha = a;
-                            e.u = sc.u[p];
-                            e.v = sc.v[p];
-                            e.z = sc.z[p];
-                            blend_backward(s.st, px[p], gm, e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+                            if (filtered) {
+                                e = kept_pair(gm, sc, p, sc.xs[c], y0 + S(r));
+                            } else {
+                                eval_pair(s.st, gm, sc.xs[c], y0 + S(r), e);
+                                // the decision and the values blended come from eval_rows, as in the forward
+                                e.alpha = a;
+                                e.u = sc.u[p];
+                                e.v = sc.v[p];
+                                e.z = sc.z[p];
+                            }
+                            blend_backward(s.st, px[p], gm, e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel,
+                                           acc, g);
                         }
                 };
                 if (GW <= LOCAL_GW) {  // accumulate on the stack: the compiler knows it aliases nothing

@@ -59,7 +59,7 @@ __global__ void prepare_kernel(SurfelArgs<S> s, S* geom, int* bounds, int* tile_
     const int r = blockIdx.x * blockDim.x + threadIdx.x;
     if (r >= s.M) return;
     const int64_t i = s.order[r];
-    prepare_geom(s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i], *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
+    prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i], *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
     box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     tile_count[r] = int(tile_range(bounds + 4 * i).count());
 }
@@ -149,7 +149,7 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
             if (e.alpha == S(0)) continue;
             const SurfelColour<S> sf = surfel_colour(s, sh.id[j]);
             S col[3], pre[3];
-            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, e.u, e.v, col, pre, st.pixel_filter > 0 ? e.blur : nullptr);
+            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, e.u, e.v, col, pre, st.pixel_filter > 0 ? sh.g[j].blur : nullptr);
             blend_forward(st, p, e.alpha, e.z, col, sf.normal, base + j - start);
         }
     }

@@ -36,14 +36,16 @@ struct Settings {
 constexpr int TILE = 16;
 constexpr int TILE_PIXELS = TILE * TILE;
 
-// Per-surfel geometry prepared once per render (prepare_geom): GEOM scalars, in this order.
-constexpr int GEOM = 16;
+// Per-surfel geometry prepared once per render (prepare_geom): GEOM scalars, in this order. (The CUDA kernels
+// stage BLOCK of them in shared memory, at most 48 KB a block: 21 doubles each is the most that fits.)
+constexpr int GEOM = 19;
 template <class S>
 struct Geom {
     S A[3], B[3], C[3];  // c(x, y) = (x - cx) A + (y - cy) B + C   (the cross product h_x x h_y, expanded)
     S cx, cy, zc;        // projected centre (pixels) and camera depth of the centre
     S m3[3];             // third row of T: hit depth z = m3 . (u, v, 1)
     S o;                 // opacity
+    S blur[3];           // anti-aliased: the waves' blur I - (I + S)^-1, S the footprint at the centre (else 0)
 };
 
 // Gradient slots of one surfel row.
@@ -59,7 +61,8 @@ enum : int {
     G_NORMAL = 19,  // dL/d surfel normal                  (3)
     G_A = 22,       // dL/dA through the footprint's Jacobian (3; anti-aliased only)
     G_B = 25,       // dL/dB through the footprint's Jacobian (3; anti-aliased only)
-    G_WAVES = 28,   // per wave: d k_x, d k_y, d phi, d a (3)
+    G_BLUR = 28,    // dL/d the waves' blur b00, b01, b11 (3; anti-aliased only; b01 counted once)
+    G_WAVES = 31,   // per wave: d k_x, d k_y, d phi, d a (3)
 };
 constexpr int G_PER_WAVE = 6;
 SZ_HD constexpr int grad_width(int K) { return G_WAVES + G_PER_WAVE * K; }
@@ -201,25 +204,75 @@ constexpr double FOOTPRINT_PAD_PX = 1.0;   // ... and this many pixels, times th
 constexpr double LINEAR_LIMIT = 0.2;       // pairs whose footprint sigma exceeds this fraction of the distance to
                                            // the plane's vanishing line are culled
 
-// S = pixel_filter J J^T at the projected centre, where c = (0, 0, cz): J = [[A0, B0], [A1, B1]] / cz with
-// A = m2 x m3, B = m3 x m1, cz = C2 + cx A2 + cy B2, and the tilt 0..1 (how much J changes over the surfel). For
-// culling boxes only (the render takes J per pixel).
+// The pixel footprint at the projected centre (common.centre_footprint), in double. There c = (0, 0, cz): J =
+// d(u, v)/d(pixel) = [[A0, B0], [A1, B1]] / cz with A = m2 x m3, B = m3 x m1, cz = C2 + cx A2 + cy B2; the
+// footprint's covariance in the surfel's frame is S = pixel_filter J J^T, and tilt (0..1) says how much J changes
+// over the surfel (cz is affine in the pixel, gradient (A2, B2)). The culling boxes use S and the tilt; the waves'
+// blur is I - (I + S)^-1 (I where S is not finite).
+struct CentreFootprint {
+    double A[3], B[3], cz, j00, j01, j10, j11;
+    double s00, s01, s11, tilt;
+    bool finite;
+    double det, blur[3];
+};
 template <class S>
-SZ_HD void centre_footprint(const Settings& st, const S* T9, const S* center, double s[3], double& tilt) {
+SZ_HD CentreFootprint centre_footprint(const Settings& st, const S* T9, const S* center) {
+    CentreFootprint fp;
     const double m1[3] = {double(T9[0]), double(T9[1]), double(T9[2])};
     const double m2[3] = {double(T9[3]), double(T9[4]), double(T9[5])};
     const double m3[3] = {double(T9[6]), double(T9[7]), double(T9[8])};
     const double A[3] = {m2[1] * m3[2] - m2[2] * m3[1], m2[2] * m3[0] - m2[0] * m3[2], m2[0] * m3[1] - m2[1] * m3[0]};
     const double B[3] = {m3[1] * m1[2] - m3[2] * m1[1], m3[2] * m1[0] - m3[0] * m1[2], m3[0] * m1[1] - m3[1] * m1[0]};
+    for (int i = 0; i < 3; ++i) {
+        fp.A[i] = A[i];
+        fp.B[i] = B[i];
+    }
     const double C2 = m1[0] * m2[1] - m1[1] * m2[0];
-    const double cz = C2 + double(center[0]) * A[2] + double(center[1]) * B[2];
-    const double inv = 1.0 / (cz != 0.0 ? cz : 1e-30);
-    const double j00 = A[0] * inv, j01 = B[0] * inv, j10 = A[1] * inv, j11 = B[1] * inv;
-    s[0] = st.pixel_filter * (j00 * j00 + j01 * j01);
-    s[1] = st.pixel_filter * (j00 * j10 + j01 * j11);
-    s[2] = st.pixel_filter * (j10 * j10 + j11 * j11);
-    tilt = sqrt(st.pixel_filter) * sqrt(A[2] * A[2] + B[2] * B[2]) * (inv < 0 ? -inv : inv) / LINEAR_LIMIT;
-    tilt = tilt < 1.0 ? tilt : 1.0;
+    fp.cz = C2 + double(center[0]) * A[2] + double(center[1]) * B[2];
+    const double inv = 1.0 / (fp.cz != 0.0 ? fp.cz : 1e-30);
+    fp.j00 = A[0] * inv;
+    fp.j01 = B[0] * inv;
+    fp.j10 = A[1] * inv;
+    fp.j11 = B[1] * inv;
+    const double f = st.pixel_filter;
+    fp.s00 = f * (fp.j00 * fp.j00 + fp.j01 * fp.j01);
+    fp.s01 = f * (fp.j00 * fp.j10 + fp.j01 * fp.j11);
+    fp.s11 = f * (fp.j10 * fp.j10 + fp.j11 * fp.j11);
+    fp.tilt = sqrt(f) * sqrt(A[2] * A[2] + B[2] * B[2]) * (inv < 0 ? -inv : inv) / LINEAR_LIMIT;
+    fp.tilt = fp.tilt < 1.0 ? fp.tilt : 1.0;
+    fp.finite = fp.s00 + fp.s11 < 1e30;  // false for NaN and inf too
+    fp.det = (1.0 + fp.s00) * (1.0 + fp.s11) - fp.s01 * fp.s01;
+    fp.blur[0] = fp.finite ? 1.0 - (1.0 + fp.s11) / fp.det : 1.0;
+    fp.blur[1] = fp.finite ? fp.s01 / fp.det : 0.0;
+    fp.blur[2] = fp.finite ? 1.0 - (1.0 + fp.s00) / fp.det : 1.0;
+    return fp;
+}
+
+// Gradient of the waves' blur (v_blur: b00, b01, b11; the off-diagonal counted once) -> A, B (added); returns
+// dL/dcz. cz's own dependence on C2, A2, B2 and the centre is the caller's (finalize_grads).
+SZ_HD double centre_blur_backward(const Settings& st, const CentreFootprint& fp, const double* v_blur, double* v_A,
+                                  double* v_B) {
+    if (!fp.finite) return 0.0;
+    const double idet = 1.0 / fp.det;
+    // blur = I - P, P = [[1 + s11, -s01], [-s01, 1 + s00]] / det, det = (1 + s00)(1 + s11) - s01^2
+    const double v_p00 = -v_blur[0], v_p01 = -v_blur[1], v_p11 = -v_blur[2];
+    const double v_det = -(v_p00 * (1.0 + fp.s11) - v_p01 * fp.s01 + v_p11 * (1.0 + fp.s00)) * idet * idet;
+    const double v_s00 = v_p11 * idet + v_det * (1.0 + fp.s11);
+    const double v_s11 = v_p00 * idet + v_det * (1.0 + fp.s00);
+    const double v_s01 = -v_p01 * idet - 2.0 * v_det * fp.s01;
+    // S = f J J^T
+    const double f = st.pixel_filter;
+    const double v_j00 = f * (2.0 * fp.j00 * v_s00 + fp.j10 * v_s01);
+    const double v_j01 = f * (2.0 * fp.j01 * v_s00 + fp.j11 * v_s01);
+    const double v_j10 = f * (2.0 * fp.j10 * v_s11 + fp.j00 * v_s01);
+    const double v_j11 = f * (2.0 * fp.j11 * v_s11 + fp.j01 * v_s01);
+    // J = [[A0, B0], [A1, B1]] / cz
+    const double inv = 1.0 / (fp.cz != 0.0 ? fp.cz : 1e-30);
+    v_A[0] += v_j00 * inv;
+    v_A[1] += v_j10 * inv;
+    v_B[0] += v_j01 * inv;
+    v_B[1] += v_j11 * inv;
+    return -(fp.j00 * v_j00 + fp.j01 * v_j01 + fp.j10 * v_j10 + fp.j11 * v_j11) * inv;
 }
 
 // Screen box (xmin, ymin, xmax, ymax) of the image of x^T (I + S)^-1 x <= r2 in the surfel's plane (S = 0: the
@@ -282,10 +335,10 @@ SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S*
     if (st.pixel_filter > 0) {
         // no screen filter: the footprint-widened support, bounded as in common.screen_boxes: the conic of the
         // centre's footprint and the disc grown by r footprint sigmas, intersected, then padded by the tilt
-        double s[3], tilt;
-        centre_footprint(st, T9, center, s, tilt);
+        const CentreFootprint fp = centre_footprint(st, T9, center);
+        const double tilt = fp.tilt;
         S wide[4];
-        conic_box(T9, r2, S(s[0]), S(s[1]), S(s[2]), big, wide);
+        conic_box(T9, r2, S(fp.s00), S(fp.s01), S(fp.s11), big, wide);
         const S grow = sqrt(r2 * S(st.pixel_filter));
         b[0] = smax(wide[0], b[0] - grow);
         b[1] = smax(wide[1], b[1] - grow);
@@ -378,7 +431,7 @@ SZ_HD void project_backward(const CameraArgs<S>& cam, const S* mean, const S* qu
 // Expanding it around the projected centre (in double, once per surfel) turns the per-pixel cross product into
 // 6 multiply-adds and removes the cancellation the per-pixel form suffers far from the image origin.
 template <class S>
-SZ_HD void prepare_geom(const S* T9, const S* center, S depth, S opacity, Geom<S>& g) {
+SZ_HD void prepare_geom(const Settings& st, const S* T9, const S* center, S depth, S opacity, Geom<S>& g) {
     double m1[3] = {double(T9[0]), double(T9[1]), double(T9[2])};
     double m2[3] = {double(T9[3]), double(T9[4]), double(T9[5])};
     double m3[3] = {double(T9[6]), double(T9[7]), double(T9[8])};
@@ -396,6 +449,11 @@ SZ_HD void prepare_geom(const S* T9, const S* center, S depth, S opacity, Geom<S
     g.cy = center[1];
     g.zc = depth;
     g.o = opacity;
+    g.blur[0] = g.blur[1] = g.blur[2] = S(0);
+    if (st.pixel_filter > 0) {
+        const CentreFootprint fp = centre_footprint(st, T9, center);
+        for (int i = 0; i < 3; ++i) g.blur[i] = S(fp.blur[i]);
+    }
 }
 
 // ---- forward of one (surfel, pixel) pair ------------------------------------------------------------------------
@@ -408,10 +466,9 @@ struct PairEval {
     S ex, raw;     // exp(-rho/2) (anti-aliased: det(I + S)^-1/2 exp(-q/2)) and o * ex before the clamp
     S alpha;       // final alpha, 0 where skipped (alpha < alpha_min or z < near)
     bool use3;     // the ray-splat hit (rho3d) won over the screen filter (rho2d); always, when anti-aliased
-    // anti-aliased only (see eval_pair_filtered): the hit x, the Jacobian d(u, v)/d(pixel), P = (I + S)^-1 (p01
-    // once), det(I + S), and the colour's blur I - P
-    S xu, xv, j00, j01, j10, j11, p00, p01, p11, det;
-    S blur[3];
+    // anti-aliased only (see eval_pair_filtered): 1 / c2, the hit x, the Jacobian d(u, v)/d(pixel),
+    // P = (I + S)^-1 (p01 once) and 1 / det(I + S)
+    S inv, xu, xv, j00, j01, j10, j11, p00, p01, p11, idet;
 };
 
 // Products and sums of the blend decision, each rounded on its own: on a GPU the compiler may otherwise fuse a
@@ -486,7 +543,9 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
 // Anti-aliased (st.pixel_filter > 0): the pixel's Gaussian footprint, variance f = pixel_filter, is N(x, S) in the
 // surfel's frame around the hit x, S = f J J^T, J = d(u, v)/d(pixel). With P = (I + S)^-1 the surfel's falloff
 // averaged over the footprint is det(I + S)^-1/2 exp(-x^T P x / 2), and its colour the mean under N(P x, I - P): a
-// wave a cos(k.x + phi) becomes a exp(-k^T (I - P) k / 2) cos(k.(P x) + phi). Same as reference.footprint_filter.
+// wave a cos(k.x + phi) becomes a exp(-k^T (I - P) k / 2) cos(k.(P x) + phi). The waves' blur I - P is taken at
+// the projected centre, once per surfel (Geom::blur, wave_gains); the rest per pixel. Same as
+// reference.footprint_filter.
 // Pairs with tr S > 1 / alpha_min^2 are culled (their gain alone is below alpha_min). Branch-free.
 template <class S>
 SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
@@ -524,8 +583,7 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     e.alpha = pair_alpha(st, raw, z);
     e.use3 = true;
     e.xu = xu; e.xv = xv; e.j00 = j00; e.j01 = j01; e.j10 = j10; e.j11 = j11;
-    e.p00 = p00; e.p01 = p01; e.p11 = p11; e.det = det;
-    e.blur[0] = S(1) - p00; e.blur[1] = -p01; e.blur[2] = S(1) - p11;
+    e.p00 = p00; e.p01 = p01; e.p11 = p11; e.idet = idet; e.inv = inv;
 }
 
 // Either evaluation, by the settings (a branch every thread of a launch takes the same way).
@@ -543,17 +601,24 @@ SZ_HD S wave_gain(const S* blur, S kx, S ky) {
     return sz_exp(S(-0.5) * (blur[0] * kx * kx + S(2) * blur[1] * kx * ky + blur[2] * ky * ky));
 }
 
+// Every wave's footprint gain for one anti-aliased surfel (its blur is the same at all its pixels): gains[k].
+template <class S>
+SZ_HD void wave_gains(const Geom<S>& g, const S* wv, int K, S* gains) {
+    for (int k = 0; k < K; ++k) gains[k] = wave_gain(g.blur, wv[2 * k], wv[2 * k + 1]);
+}
+
 // c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp. g_k = 1,
-// or wave_gain(blur, k_k) when a blur is given (anti-aliased).
+// or, anti-aliased, gains[k] (wave_gains, once per surfel) or else wave_gain(blur, k_k) (blur: Geom::blur).
 template <int KMAX = -1, class S>
 SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int K, S u, S v, S col[3], S pre[3],
-                      const S* blur = nullptr, S* sn_out = nullptr, S* cs_out = nullptr, S* gain_out = nullptr) {
+                      const S* blur = nullptr, const S* gains = nullptr, S* sn_out = nullptr, S* cs_out = nullptr,
+                      S* gain_out = nullptr) {
     S r = base[0], gg = base[1], b = base[2];
     for_each_wave<KMAX>(K, [&](int k) {
         S sn, cs;
         sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
-        if (blur) {
-            const S gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
+        if (gains || blur) {
+            const S gk = gains ? gains[k] : wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
             if (gain_out) gain_out[k] = gk;
             cs *= gk;  // sn is only kept for the backward, which multiplies by the gain itself
         }
@@ -695,12 +760,12 @@ SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>
     acc(G_CENTER + 1, hit ? S(0) : S(-2 * st.filter_inv_sq) * v_rho * e.dy);
 }
 
-// geom_backward of an anti-aliased pair (eval_pair_filtered): d(alpha, z, colour centre P x, blur I - P) -> the
-// slots, through P = (I + S)^-1, det(I + S), S = f J J^T, J = d(u, v)/d(pixel) and the hit x = (c0, c1) / c2.
-// P's off-diagonal and the blur's are one parameter each (they appear twice in the symmetric matrix).
+// geom_backward of an anti-aliased pair (eval_pair_filtered): d(alpha, z, colour centre P x) -> the slots, through
+// P = (I + S)^-1, det(I + S), S = f J J^T, J = d(u, v)/d(pixel) and the hit x = (c0, c1) / c2. P's off-diagonal is
+// one parameter (it appears twice in the symmetric matrix).
 template <class S, class Acc>
 SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S v_alpha, S v_z,
-                                  S v_mu, S v_mv, const S* v_blur, Acc& acc) {
+                                  S v_mu, S v_mv, Acc& acc) {
     const bool clamped = e.raw > S(st.alpha_max);
     const S v_raw = clamped ? S(0) : v_alpha;
     acc(G_O, v_raw * e.ex);
@@ -712,10 +777,10 @@ SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const Pa
     acc(G_M3 + 1, v_z * e.v);
     acc(G_M3 + 2, v_z);
     const S u = e.xu, v = e.xv;
-    // blur = I - P, colour centre = P x, q = x^T P x
-    const S v_p00 = -v_blur[0] + v_mu * u + v_q * u * u;
-    const S v_p01 = -v_blur[1] + v_mu * v + v_mv * u + S(2) * v_q * u * v;
-    const S v_p11 = -v_blur[2] + v_mv * v + v_q * v * v;
+    // colour centre = P x, q = x^T P x
+    const S v_p00 = v_mu * u + v_q * u * u;
+    const S v_p01 = v_mu * v + v_mv * u + S(2) * v_q * u * v;
+    const S v_p11 = v_mv * v + v_q * v * v;
     S v_u = e.p00 * v_mu + e.p01 * v_mv + S(2) * v_q * (e.p00 * u + e.p01 * v);
     S v_v = e.p01 * v_mu + e.p11 * v_mv + S(2) * v_q * (e.p01 * u + e.p11 * v);
     // P = [[1 + s11, -s01], [-s01, 1 + s00]] / det, det = (1 + s00)(1 + s11) - s01^2, gain = det^-1/2
@@ -723,7 +788,7 @@ SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const Pa
     const S s00 = f * (e.j00 * e.j00 + e.j01 * e.j01);
     const S s01 = f * (e.j00 * e.j10 + e.j01 * e.j11);
     const S s11 = f * (e.j10 * e.j10 + e.j11 * e.j11);
-    const S idet = S(1) / e.det;
+    const S idet = e.idet;
     const S v_det = S(-0.5) * v_raw * e.raw * idet -
                     (v_p00 * (S(1) + s11) - v_p01 * s01 + v_p11 * (S(1) + s00)) * idet * idet;
     const S v_s00 = v_p11 * idet + v_det * (S(1) + s11);
@@ -735,7 +800,7 @@ SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const Pa
     const S v_j10 = f * (S(2) * e.j10 * v_s11 + e.j00 * v_s01);
     const S v_j11 = f * (S(2) * e.j11 * v_s11 + e.j01 * v_s01);
     // J = [[A0 - u A2, B0 - u B2], [A1 - v A2, B1 - v B2]] / c2
-    const S inv = S(1) / e.c2;
+    const S inv = e.inv;
     acc(G_A + 0, v_j00 * inv);
     acc(G_A + 1, v_j10 * inv);
     acc(G_A + 2, -(u * v_j00 + v * v_j10) * inv);
@@ -758,23 +823,24 @@ SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const Pa
 }
 
 // One contribution, back to front. Contributions must be visited in reverse blending order, each exactly once.
-// e: the pair (alpha > 0 and pos < last); base..wa: this surfel's colour parameters; n its normal.
+// e: the pair (alpha > 0 and pos < last); base..wa: this surfel's colour parameters; n its normal; gains: its
+// wave_gains when anti-aliased (or nullptr: computed here from g.blur).
 // Calls acc for the same slots in the same order whatever the pair (see geom_backward).
 template <int KMAX = -1, class S, class Acc>
 SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n, const S* base,
-                          const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc) {
+                          const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc, const S* gains = nullptr) {
     S a = e.alpha;
     S oma = S(1) - a;
     S Ti = p.T / oma;  // transmittance before this contribution
     S w = a * Ti;
     S col[3], pre[3];
     const bool filtered = st.pixel_filter > 0;
-    const S* blur = filtered ? e.blur : nullptr;
+    const S* blur = filtered ? g.blur : nullptr;
     // sin/cos (cos times the footprint gain) of each wave, computed once for the colour and reused for the derivatives
     constexpr int CACHE = KMAX >= 0 ? (KMAX > 0 ? KMAX : 1) : SINCOS_CACHE;
     S sn_cache[CACHE], cs_cache[CACHE], gain_cache[CACHE];
     const bool cached = KMAX >= 0 || K <= SINCOS_CACHE;
-    wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, blur, cached ? sn_cache : nullptr,
+    wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, blur, gains, cached ? sn_cache : nullptr,
                      cached ? cs_cache : nullptr, cached ? gain_cache : nullptr);
     S m = ndc_depth(st, e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
@@ -807,7 +873,7 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
         } else {
             sz_sincos(e.u * wv[2 * k] + e.v * wv[2 * k + 1] + wp[k], sn, cs);
             if (filtered) {
-                gk = wave_gain(e.blur, wv[2 * k], wv[2 * k + 1]);
+                gk = gains ? gains[k] : wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
                 cs *= gk;
             }
         }
@@ -818,8 +884,8 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
         if (filtered) {  // the gain exp(-k^T b k / 2): d/dk = -gain b k, d/db = -gain k k^T / 2
             const S v_g = cs * v_cos;  // (dL/d gain) times gain
             const S kx = wv[2 * k], ky = wv[2 * k + 1];
-            v_kx -= v_g * (e.blur[0] * kx + e.blur[1] * ky);
-            v_ky -= v_g * (e.blur[1] * kx + e.blur[2] * ky);
+            v_kx -= v_g * (blur[0] * kx + blur[1] * ky);
+            v_ky -= v_g * (blur[1] * kx + blur[2] * ky);
             v_blur[0] -= S(0.5) * v_g * kx * kx;
             v_blur[1] -= v_g * kx * ky;
             v_blur[2] -= S(0.5) * v_g * ky * ky;
@@ -834,7 +900,10 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
         v_v += v_phase * wv[2 * k + 1];
     });
     if (filtered) {
-        geom_backward_filtered(st, g, e, v_alpha, v_z, v_u, v_v, v_blur, acc);
+        acc(G_BLUR + 0, v_blur[0]);
+        acc(G_BLUR + 1, v_blur[1]);
+        acc(G_BLUR + 2, v_blur[2]);
+        geom_backward_filtered(st, g, e, v_alpha, v_z, v_u, v_v, acc);
     } else {
         // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
         geom_backward(st, g, e, v_alpha, v_z, v_u, v_v, acc);
@@ -843,9 +912,11 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
 
 // A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
 // A = m2 x m3, B = m3 x m1, C = m1 x m2 with c(x, y) = x A + y B + C, so dL/dA = sum x dL/dc = G_CX + cx G_C, etc.
+// Anti-aliased, the waves' blur goes through centre_footprint, whose cz = C2 + cx A2 + cy B2 also depends on the
+// centre.
 template <class S, class R>
-SZ_HD void finalize_grads(const S* T9, const S* center, const R* Gs, int K, S* v_T, S* v_center, S* v_depth,
-                          S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp, S* v_wa) {
+SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const R* Gs, int K, S* v_T, S* v_center,
+                          S* v_depth, S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp, S* v_wa) {
     double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
     double cx = double(center[0]), cy = double(center[1]);
     for (int i = 0; i < 3; ++i) {
@@ -855,6 +926,17 @@ SZ_HD void finalize_grads(const S* T9, const S* center, const R* Gs, int K, S* v
         v_C[i] = double(Gs[G_C + i]);
         v_A[i] = double(Gs[G_CX + i]) + cx * v_C[i] + double(Gs[G_A + i]);
         v_B[i] = double(Gs[G_CY + i]) + cy * v_C[i] + double(Gs[G_B + i]);
+    }
+    double v_cx = double(Gs[G_CENTER]), v_cy = double(Gs[G_CENTER + 1]);
+    if (st.pixel_filter > 0) {
+        const CentreFootprint fp = centre_footprint(st, T9, center);
+        const double v_blur[3] = {double(Gs[G_BLUR]), double(Gs[G_BLUR + 1]), double(Gs[G_BLUR + 2])};
+        const double v_cz = centre_blur_backward(st, fp, v_blur, v_A, v_B);
+        v_C[2] += v_cz;
+        v_A[2] += cx * v_cz;
+        v_B[2] += cy * v_cz;
+        v_cx += fp.A[2] * v_cz;
+        v_cy += fp.B[2] * v_cz;
     }
     // d(a x b): v_su_tu = b x g, v_sv_tv = g x a
     auto cross = [](const double* a, const double* b, double* out, double sign) {
@@ -876,8 +958,8 @@ SZ_HD void finalize_grads(const S* T9, const S* center, const R* Gs, int K, S* v
         v_base[i] = S(Gs[G_BASE + i]);
         v_normal[i] = S(Gs[G_NORMAL + i]);
     }
-    v_center[0] = S(Gs[G_CENTER]);
-    v_center[1] = S(Gs[G_CENTER + 1]);
+    v_center[0] = S(v_cx);
+    v_center[1] = S(v_cy);
     v_depth[0] = S(Gs[G_ZC]);
     v_opac[0] = S(Gs[G_O]);
     for (int k = 0; k < K; ++k) {

@@ -9,7 +9,8 @@ from __future__ import annotations
 import torch
 
 from ..types import Camera, RenderOutput, Surfels
-from .common import LINEAR_LIMIT, SETTINGS, Projected, RasterSettings, background_tensor, ndc_depth, project
+from .common import (LINEAR_LIMIT, SETTINGS, Projected, RasterSettings, background_tensor, centre_footprint, ndc_depth,
+                     project)
 
 # (pixel, surfel, wave) triples evaluated at once; bounds memory with autograd to a few hundred MB.
 PAIR_BUDGET = 1 << 19
@@ -104,7 +105,8 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         # the footprint is linearised at the hit: not where the pixel is within a few footprints of the plane's
         # vanishing line c_z = 0 (c_z is affine in the pixel, gradient (A_2, B_2))
         linear = st.pixel_filter * (A[:, 2] ** 2 + B[:, 2] ** 2) <= (LINEAR_LIMIT * cz) ** 2
-        gain, q, (u, v), blur = footprint_filter(u, v, jac, st, hits & linear)
+        gain, q, (u, v) = footprint_filter(u, v, jac, st, hits & linear)
+        blur = waves_blur(T, proj.center_px[idx], st)
         z = m3[:, 0] * u + m3[:, 1] * v + m3[:, 2]
         alpha = torch.clamp(s.opacities[idx] * gain * torch.exp(-0.5 * q), max=st.alpha_max)
         # the culling box bounds the support (common.FOOTPRINT_PAD): a pixel outside it is not shaded, as in the
@@ -164,8 +166,9 @@ def footprint_filter(u, v, jac, st: RasterSettings, hits):
     - the colour, averaged over the footprint weighted by that falloff, is the colour's mean under N(P x, I - P):
       a wave a cos(k.x' + phi) becomes a exp(-k^T (I - P) k / 2) cos(k.(P x) + phi).
     S -> 0 gives back the unfiltered surfel; S -> infinity (a sub-pixel surfel) its mean colour over its Gaussian.
-    Returns gain (0 where the pair is culled), q, the colour's centre P x, and (I - P) as (b00, b01, b11).
-    Pairs with tr S > 1 / alpha_min^2 are culled: their gain alone is below alpha_min.
+    Returns gain (0 where the pair is culled), q and the colour's centre P x. The waves' blur I - P is taken once
+    per surfel, at its projected centre (waves_blur). Pairs with tr S > 1 / alpha_min^2 are culled: their gain
+    alone is below alpha_min.
     """
     j00, j01, j10, j11 = jac
     f = st.pixel_filter
@@ -180,12 +183,25 @@ def footprint_filter(u, v, jac, st: RasterSettings, hits):
     gain = torch.where(keep, torch.rsqrt(det), zero)
     q = p00 * u * u + 2 * p01 * u * v + p11 * v * v
     mu = (p00 * u + p01 * v, p01 * u + p11 * v)
-    return gain, q, mu, (1 - p00, -p01, 1 - p11)
+    return gain, q, mu
+
+
+def waves_blur(T, center_px, st: RasterSettings):
+    """The waves' blur I - (I + S)^-1 per surfel, (b00, b01, b11), with S the pixel footprint at the projected
+    centre (common.centre_footprint): one blur for all the surfel's pixels, so each wave's gain exp(-k^T b k / 2) is
+    computed once per surfel. I where S is not finite (a surfel seen exactly edge on)."""
+    s00, s01, s11, _ = centre_footprint(T, center_px, st)
+    finite = s00 + s11 < 1e30  # False for NaN and inf too
+    s00, s01, s11 = (torch.where(finite, t, torch.zeros_like(t)) for t in (s00, s01, s11))
+    det = (1 + s00) * (1 + s11) - s01 * s01
+    one, zero = torch.ones_like(det), torch.zeros_like(det)
+    return (torch.where(finite, 1 - (1 + s11) / det, one), torch.where(finite, s01 / det, zero),
+            torch.where(finite, 1 - (1 + s00) / det, one))
 
 
 def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None) -> torch.Tensor:
     """c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)) for every pair -> [P,n,3]. g_k = 1, or with
-    blur = (b00, b01, b11) (the colour's blur I - P, footprint_filter) exp(-k_k^T b k_k / 2)."""
+    blur = (b00, b01, b11) per surfel (waves_blur) exp(-k_k^T b k_k / 2)."""
     base = s.base_color[idx]  # [n,3]
     if s.num_waves == 0:
         return torch.clamp(base.expand(u.shape[0], -1, -1), min=0)
