@@ -365,8 +365,9 @@ def compare_command(
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n", help="equal primitive count for all"),
     densify: bool = typer.Option(False, "--densify/--no-densify", help="densify (off: the paper's fixed-count protocol)"),
     quick: bool = typer.Option(False, "--quick", help="small scene and short schedule: a few minutes on 2 cores"),
-    equal_bytes: bool = typer.Option(False, "--equal-bytes", help="equal model size instead of equal count: the most "
-                                     "compact model gets --num-primitives, each other as many as fit in its bytes"),
+    equal_bytes: bool = typer.Option(False, "--equal-bytes", help="equal model size instead of equal count: the first "
+                                     "model gets --num-primitives and its trained size (after pruning waves, if "
+                                     "adaptive) is the budget; each other model gets as many as fit in it"),
     antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render every model with the "
                                    "pixel-footprint filter"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),

@@ -68,8 +68,9 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             antialias: bool = False) -> dict:
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
-    synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the bytes of
-    the most compact model at `num_primitives`: each model gets as many primitives as fit in them. `antialias`
+    synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the stored
+    size of the first model trained with `num_primitives` (after pruning, for adaptive waves): every other model
+    gets as many primitives as fit in it (an adaptive one, as if it kept every wave). `antialias`
     trains and renders every model with the pixel-footprint filter. Runs in out/runs/<label> made with the same
     settings are reused (finished) or resumed (interrupted); made with other settings, they are an error, or
     retrained with `overwrite`."""
@@ -93,49 +94,55 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     num_primitives = num_primitives or (preset.num_primitives if preset else None)
     base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, seed=seed,
                            backend=backend, antialias=antialias).validate()
-    counts = {c.label: num_primitives for c in choices}
-    if equal_bytes:
-        if densify or not num_primitives:
-            raise SplatzooError("--equal-bytes compares models at fixed primitive counts: give --num-primitives (or "
-                                "--quick) and leave densification off")
-        counts = equal_byte_counts(choices, num_primitives)
-    cfgs = {c.label: replace(base_cfg, num_primitives=counts[c.label]) for c in choices}
-    # decide every run before training any: a run made with other settings is an error (or, with overwrite,
-    # retrained), never a row of old numbers beside new settings
-    plan = {}
-    for c in choices:
-        run = Run(out / "runs" / _safe(c.label))
-        status = run.status
-        if status == "foreign":
+    if equal_bytes and (densify or not num_primitives):
+        raise SplatzooError("--equal-bytes compares models at fixed primitive counts: give --num-primitives (or "
+                            "--quick) and leave densification off")
+    run_dirs = {c.label: Run(out / "runs" / _safe(c.label)) for c in choices}
+    for run in run_dirs.values():
+        if run.status == "foreign":
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
+
+    def plan(c: ModelChoice, count: int):
+        """The run of `c` with `count` primitives: new, finished (reuse), started or interrupted (resume), or
+        overwrite; a run made with other settings is an error without `overwrite`, never a row of old numbers."""
+        run, cfg = run_dirs[c.label], replace(base_cfg, num_primitives=count)
+        status = run.status
         if status != "new":
-            diffs = differences(run.record(), make_record(scene, scene_options, c.model, model_configs[c.label],
-                                                          cfgs[c.label]))
+            diffs = differences(run.record(), make_record(scene, scene_options, c.model, model_configs[c.label], cfg))
             if diffs and not overwrite:
                 raise SplatzooError(f"{run.path} was trained with other settings ({'; '.join(diffs)}); pass "
                                     "--overwrite to retrain it, or choose another --out")
             status = "overwrite" if diffs else status
-        plan[c.label] = (run, status)
-    runs, settings = {}, {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
-                          "num_primitives": num_primitives, "densify": densify, "seed": seed, "backend": backend,
-                          "scene_options": scene_options, "models": labels, "equal_bytes": equal_bytes,
-                          "antialias": antialias, "primitives": counts,
-                          "train_views": len(scene.train), "test_views": len(scene.test)}
-    for c in choices:
-        run, status = plan[c.label]
+        return cfg, status
+
+    def train_or_reuse(c: ModelChoice, cfg: TrainConfig, status: str) -> dict:
+        run = run_dirs[c.label]
         if status == "finished":  # trained earlier with these settings: reuse
-            runs[c.label] = run.metrics() or evaluate_run(run.path, backend=backend)
-        else:
-            result = train(scene, c.model, c.options, cfgs[c.label], run.path,
-                           resume=status in ("started", "interrupted"),
-                           overwrite=status == "overwrite", progress=progress, scene_options=scene_options,
-                           command="splatzoo compare")
-            runs[c.label] = result.metrics
-        settings["backend"] = runs[c.label].get("backend", backend)
+            return run.metrics() or evaluate_run(run.path, backend=backend)
+        return train(scene, c.model, c.options, cfg, run.path, resume=status in ("started", "interrupted"),
+                     overwrite=status == "overwrite", progress=progress, scene_options=scene_options,
+                     command="splatzoo compare").metrics
+
+    # equal count: decide every run before training any. Equal bytes: the first model sets the budget, then the
+    # others are decided.
+    phases = [choices[:1], choices[1:]] if equal_bytes else [choices]
+    counts, runs, budget = {}, {}, None
+    for phase in phases:
+        for c in phase:
+            counts[c.label] = num_primitives if budget is None else max(1, budget // bytes_per_primitive(c))
+        planned = {c.label: plan(c, counts[c.label]) for c in phase}
+        for c in phase:
+            runs[c.label] = train_or_reuse(c, *planned[c.label])
+        if equal_bytes:
+            budget = int(runs[choices[0].label]["size_bytes"])
+    settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
+                "num_primitives": num_primitives, "densify": densify, "seed": seed,
+                "backend": runs[choices[-1].label].get("backend", backend), "scene_options": scene_options,
+                "models": labels, "equal_bytes": equal_bytes, "antialias": antialias, "primitives": counts,
+                "train_views": len(scene.train), "test_views": len(scene.test)}
     report = {"runs": runs, "settings": settings}
     write_json(out / "compare.json", report)
     write_text(out / "report.md", report_markdown(report))
-    run_dirs = {c.label: plan[c.label][0] for c in choices}
     plot_convergence(run_dirs, out / "convergence.png")
     plot_comparison(scene, run_dirs, out / "compare.png", backend=settings["backend"])
     return report
@@ -150,14 +157,6 @@ def bytes_per_primitive(choice: ModelChoice) -> int:
         model = create_model(choice.model, torch.zeros(n, 3), torch.full((n, 3), 0.5), **choice.options)
         sizes.append(model.size_bytes())
     return sizes[1] - sizes[0]
-
-
-def equal_byte_counts(choices: list[ModelChoice], num_primitives: int) -> dict[str, int]:
-    """Primitive counts at equal bytes: the most compact model gets num_primitives, every other model as many as
-    fit in the same bytes (at least one)."""
-    per = {c.label: bytes_per_primitive(c) for c in choices}
-    budget = min(per.values()) * num_primitives
-    return {label: max(1, budget // b) if b > 0 else num_primitives for label, b in per.items()}
 
 
 def _safe(label: str) -> str:
@@ -190,8 +189,8 @@ def report_markdown(report: dict) -> str:
 
     first = labels[0]
     conv = runs[first].get("conventions", {})
-    budget = (f"equal bytes: each model as many primitives as fit in the size of {s['num_primitives']} of the most "
-              "compact one" if s.get("equal_bytes") else f"{s['num_primitives'] or 'all'} initial primitives")
+    budget = (f"equal bytes: each model as many primitives as fit in the trained size of {s['num_primitives']} of "
+              f"`{first}`" if s.get("equal_bytes") else f"{s['num_primitives'] or 'all'} initial primitives")
     lines = [
         f"# splatzoo compare: {', '.join(labels)}", "",
         f"Scene `{s['scene']}` ({s['train_views']} train / {s['test_views']} test views), {s['iterations']} iterations, "

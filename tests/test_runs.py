@@ -121,10 +121,11 @@ def test_compare_never_reports_old_numbers(tiny_data, tmp_path):
 
 
 def test_compare_at_equal_bytes(tiny_data, tmp_path):
-    """--equal-bytes: the most compact model gets --num-primitives, the others as many as fit in its bytes; the runs
-    record their own counts, so an equal-count comparison in the same folder is another setting, not a reuse."""
+    """--equal-bytes: the first model gets --num-primitives and its trained size is the budget, the others get as
+    many primitives as fit in it; the runs record their own counts, so an equal-count comparison in the same folder
+    is another setting, not a reuse."""
     out = tmp_path / "cmp"
-    base = ["compare", "gabor", "2dgs", "--data", str(tiny_data), "--out", str(out), "--num-primitives", "100",
+    base = ["compare", "2dgs", "gabor", "--data", str(tiny_data), "--out", str(out), "--num-primitives", "100",
             "--backend", "cpu", "--iterations", "4"]
     r = runner.invoke(app, base + ["--equal-bytes"])
     assert r.exit_code == 0, r.output
@@ -146,6 +147,13 @@ def test_compare_at_equal_bytes(tiny_data, tmp_path):
     assert json.loads((out / "runs" / "gabor" / "config.json").read_text())["train"]["antialias"] is True
     r = runner.invoke(app, base + ["--equal-bytes", "--densify"])
     assert r.exit_code != 0 and "fixed primitive counts" in str(r.exception)
+    # gabor first: its trained size (what an adaptive model keeps) is the budget, and 2DGS fills it
+    r = runner.invoke(app, ["compare", "gabor", "2dgs", "--data", str(tiny_data), "--out", str(tmp_path / "cmp2"),
+                            "--num-primitives", "100", "--backend", "cpu", "--iterations", "4", "--equal-bytes"])
+    assert r.exit_code == 0, r.output
+    runs = json.loads((tmp_path / "cmp2" / "compare.json").read_text())["runs"]
+    assert runs["gabor"]["num_primitives"] == 100
+    assert runs["2dgs"]["num_primitives"] == runs["gabor"]["size_bytes"] // 52 == 100 * 28 // 13
 
 
 def test_resume_takes_its_settings_from_the_run(tiny_data, tmp_path):
