@@ -408,6 +408,8 @@ def sweep_command(
     quick: bool = typer.Option(False, "--quick", help="small synthetic scene (96x96) and a short schedule"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other settings"),
+    antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render every run with the "
+                                   "pixel-footprint filter"),
     backend: str = _BACKEND,
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,
@@ -425,7 +427,7 @@ def sweep_command(
     options.pop("n_waves", None)
     sweep(data, out, model=model, n_waves=n_waves, num_primitives=num_primitives, iterations=iterations,
           quick=quick, seed=seed, backend=backend, synthetic_scene=scene, model_options=options, overwrite=overwrite,
-          scene_options=_scene_options(resolution, max_width, test_every, background, white_background))
+          antialias=antialias, scene_options=_scene_options(resolution, max_width, test_every, background, white_background))
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: sweep.json, report.md, pareto.png")
 

@@ -49,8 +49,10 @@ def grid_choice(model: str, n_waves: int, options: dict | None = None) -> ModelC
 def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2, 4, 8),
           num_primitives=(1000, 2000, 4000), iterations: int | None = None, quick: bool = False, seed: int = 0,
           backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
-          synthetic_scene: str | None = None, model_options: dict | None = None, overwrite: bool = False) -> dict:
+          synthetic_scene: str | None = None, model_options: dict | None = None, overwrite: bool = False,
+          antialias: bool = False) -> dict:
     """Train the grid and write sweep.json, pareto.png and report.md into `out`; returns the sweep.json content.
+    `antialias` trains and renders every run with the pixel-footprint filter.
 
     Without `data` a built-in synthetic scene is rendered (sweater; --quick: 96x96, 16 views). Runs live in
     out/n<primitives>/runs/<label>; finished runs are reused, so an interrupted sweep picks up where it stopped.
@@ -77,7 +79,7 @@ def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2
     for n in counts:
         report = compare(list(choices.values()), data, out / f"n{n}", iterations=iterations, num_primitives=n,
                          densify=False, seed=seed, backend=backend, scene_options=scene_options, progress=progress,
-                         overwrite=overwrite)
+                         overwrite=overwrite, antialias=antialias)
         per_count[n] = report["settings"]
         for k, choice in choices.items():
             label = choice.label
@@ -95,7 +97,8 @@ def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2
     result = {"settings": {"data": str(data), "scene": first["scene"], "model": model,
                            "model_options": model_options or {}, "n_waves": waves, "num_primitives": counts,
                            "iterations": iterations, "densify": False, "seed": seed, "backend": first["backend"],
-                           "scene_options": scene_options or {}, "train_views": first["train_views"],
+                           "scene_options": scene_options or {}, "antialias": antialias,
+                           "train_views": first["train_views"],
                            "test_views": first["test_views"]},
               "points": points}
     write_json(out / "sweep.json", result)
@@ -123,7 +126,8 @@ def sweep_markdown(result: dict) -> str:
     lines = [f"# splatzoo sweep: {s['model']} waves x primitives", "",
              f"Scene `{s['scene']}` ({s['train_views']} train / {s['test_views']} test views), {s['iterations']} "
              f"iterations per run, densification off (fixed primitive count, the same initial points per count), "
-             f"seed {s['seed']}, backend `{s['backend']}`. n_waves 0 is the `2dgs` model. Render time is "
+             f"seed {s['seed']}, backend `{s['backend']}`"
+             f"{', anti-aliased (pixel-footprint filter)' if s.get('antialias') else ''}. n_waves 0 is the `2dgs` model. Render time is "
              "1000 / FPS over the test views (wall clock on this machine); size is the stored float32 parameters.",
              "", "| n_waves | primitives | PSNR ↑ | SSIM ↑ | LPIPS ↓ | render ms | size MB | Pareto (time / size) |",
              "|---|---|---|---|---|---|---|---|"]

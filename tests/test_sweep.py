@@ -41,3 +41,18 @@ def test_pareto_front_and_parsing():
     assert parse_int_list("0, 1,4", "x") == [0, 1, 4] and grid_choice("gabor", 0).model == "2dgs"
     with pytest.raises(SplatzooError, match="integers"):
         parse_int_list("1,a", "--n-waves")
+
+
+def test_sweep_antialiased(tmp_path):
+    """--antialias reaches every run of the grid, the record and the report."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    data = make_synthetic_scene("sweater", tmp_path / "tiny", views=6, width=32, height=32)
+    out = tmp_path / "sweep"
+    r = CliRunner().invoke(app, ["sweep", str(data), "--n-waves", "0,2", "--num-primitives", "40", "--iterations",
+                                 "4", "--out", str(out), "--antialias", "--backend", "cpu"])
+    assert r.exit_code == 0, r.output + repr(r.exception)
+    assert json.loads((out / "sweep.json").read_text())["settings"]["antialias"] is True
+    assert "anti-aliased" in (out / "report.md").read_text()
+    for run in ("2dgs", "gabor_n_waves_2"):
+        assert json.loads((out / "n40" / "runs" / run / "config.json").read_text())["train"]["antialias"] is True
