@@ -213,13 +213,15 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
         own_format = set(model.checkpoint()["state"]) - set(stored)
     except Exception:
         own_format = set()
-    if not own_format & set(state):
-        extra = [k for k in state if k not in stored]
-        absent = [k for k in stored if k not in state]
-        if extra or absent:
-            problems = ([f"unexpected {', '.join(extra)}"] if extra else []) + (
-                [f"missing {', '.join(absent)}"] if absent else [])
-            raise fail(f"its state does not match model {name!r} with config {_brief(config)}: {'; '.join(problems)}")
+    own_format |= set(getattr(model, "legacy_state_keys", ()))  # what older files of the layout hold
+    packed = bool(own_format & set(state))
+    extra = [k for k in state if k not in stored and not (packed and k in own_format)]
+    absent = [] if packed else [k for k in stored if k not in state]  # a packed layout's loader checks the rest
+    if extra or absent:
+        problems = ([f"unexpected {', '.join(extra)}"] if extra else []) + (
+            [f"missing {', '.join(absent)}"] if absent else [])
+        raise fail(f"its state does not match model {name!r} with config {_brief(config)}: {'; '.join(problems)}")
+    if not packed:
         _check_shapes(name, expected, state, variable, fail)
     try:
         model.load_checkpoint_state(state)

@@ -154,6 +154,14 @@ def test_compare_at_equal_bytes(tiny_data, tmp_path):
     runs = json.loads((tmp_path / "cmp2" / "compare.json").read_text())["runs"]
     assert runs["gabor"]["num_primitives"] == 100
     assert runs["2dgs"]["num_primitives"] == runs["gabor"]["size_bytes"] // 52 == 100 * 28 // 13
+    # an adaptive gabor first: the budget is what it kept after pruning its waves
+    r = runner.invoke(app, ["compare", "gabor:prune_relative=2", "2dgs", "--data", str(tiny_data), "--out",
+                            str(tmp_path / "cmp3"), "--num-primitives", "100", "--backend", "cpu", "--iterations", "4",
+                            "--equal-bytes"])
+    assert r.exit_code == 0, r.output
+    runs = json.loads((tmp_path / "cmp3" / "compare.json").read_text())["runs"]
+    assert runs["gabor:prune_relative=2"]["size_bytes"] < 100 * 28 * 4
+    assert runs["2dgs"]["num_primitives"] == runs["gabor:prune_relative=2"]["size_bytes"] // 52
 
 
 def test_resume_takes_its_settings_from_the_run(tiny_data, tmp_path):

@@ -117,6 +117,16 @@ def test_damaged_checkpoints_say_what_is_wrong(tmp_path, edit, message):
     assert str(path) in str(info.value) and "written by splatzoo" in str(info.value)
 
 
+def test_packed_checkpoints_refuse_unknown_entries(tmp_path):
+    """An adaptive model's checkpoint (active waves packed) is checked by its own loader, but an entry neither
+    layout has is still refused."""
+    ckpt = small_model(prune_relative=2).checkpoint()
+    assert "wave_mask" in ckpt["state"]
+    ckpt["state"]["bonus"] = torch.zeros(12)
+    with pytest.raises(SplatzooError, match="unexpected bonus"):
+        model_from_checkpoint(ckpt)
+
+
 def test_unknown_model_name_in_checkpoint(tmp_path):
     path = _damaged(tmp_path, lambda c: c.update(model="gabr"))
     with pytest.raises(UnknownNameError, match=r"model\.pt.*unknown model 'gabr'.*Did you mean 'gabor'"):

@@ -108,6 +108,7 @@ class GaborModel(SurfelModel):
     orientation = "fan"   # "fan": theta_i = i pi / N; "u": every wave along the local u axis
     learn_phase = True
     primitive_buffers = ("wave_counts", "wave_index", "folded_weights")  # present only for adaptive waves
+    legacy_state_keys = ("folded_weight",)  # packed checkpoints of splatzoo 0.1.0 (_upgrade_single_fold)
 
     def __init__(self, config: GaborConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
