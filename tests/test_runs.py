@@ -228,7 +228,7 @@ def test_a_finished_run_is_not_overwritten(tiny_data, tmp_path):
 
 # --- interrupts lose nothing -------------------------------------------------------------------------------------
 
-KILL_RUN = dict(iterations=300, num_primitives=150, backend="cpu", checkpoint_every=25)
+KILL_RUN = dict(iterations=1000, num_primitives=150, backend="cpu", checkpoint_every=25)
 
 
 @pytest.fixture(scope="module")
