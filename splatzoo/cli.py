@@ -171,7 +171,8 @@ _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, refer
 
 
 _TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "num_primitives", "max_primitives",
-                 "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc", "antialias")
+                 "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc", "antialias",
+                 "random_downscale")
 
 
 def _given(ctx: typer.Context) -> set[str]:
@@ -216,6 +217,8 @@ def train_command(
                               "on CUDA); each renders --batch-size views per step"),
     antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render with the "
                                    "pixel-footprint filter: alias-free when rendered smaller than trained"),
+    random_downscale: float = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered "
+                                           "at 1/2 or 1/4 size against the area-averaged image (with --antialias)"),
     viewer: bool = typer.Option(False, "--viewer", help="watch training live in the browser (see `splatzoo view`); "
                                 "it stays open after training until Ctrl-C"),
     viewer_port: int = typer.Option(8080, "--viewer-port", help="port of the live viewer"),
@@ -370,6 +373,8 @@ def compare_command(
                                      "adaptive) is the budget; each other model gets as many as fit in it"),
     antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render every model with the "
                                    "pixel-footprint filter"),
+    random_downscale: float = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered at "
+                                           "1/2 or 1/4 size against the area-averaged image (with --antialias)"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other "
                                    "settings (without it they are an error; runs with the same settings are reused)"),
@@ -387,7 +392,7 @@ def compare_command(
 
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
             seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite, equal_bytes=equal_bytes,
-            antialias=antialias,
+            antialias=antialias, random_downscale=random_downscale,
             scene_options=_scene_options(resolution, max_width, test_every, background, white_background))
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")

@@ -65,13 +65,14 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             num_primitives: int | None = None, densify: bool = False, quick: bool = False, seed: int = 0,
             backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
             synthetic_scene: str | None = None, overwrite: bool = False, equal_bytes: bool = False,
-            antialias: bool = False) -> dict:
+            antialias: bool = False, random_downscale: float = 0.0) -> dict:
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
     synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the stored
     size of the first model trained with `num_primitives` (after pruning, for adaptive waves): every other model
     gets as many primitives as fit in it (an adaptive one, as if it kept every wave). `antialias`
-    trains and renders every model with the pixel-footprint filter. Runs in out/runs/<label> made with the same
+    trains and renders every model with the pixel-footprint filter (`random_downscale`: that fraction of the training
+    views at 1/2 or 1/4 size). Runs in out/runs/<label> made with the same
     settings are reused (finished) or resumed (interrupted); made with other settings, they are an error, or
     retrained with `overwrite`."""
     from .data import load_scene
@@ -93,7 +94,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     iterations = iterations or (preset.iterations if preset else 30000)
     num_primitives = num_primitives or (preset.num_primitives if preset else None)
     base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, seed=seed,
-                           backend=backend, antialias=antialias).validate()
+                           backend=backend, antialias=antialias,
+                           random_downscale=random_downscale).validate()
     if equal_bytes and (densify or not num_primitives):
         raise SplatzooError("--equal-bytes compares models at fixed primitive counts: give --num-primitives (or "
                             "--quick) and leave densification off")
@@ -138,7 +140,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
                 "num_primitives": num_primitives, "densify": densify, "seed": seed,
                 "backend": runs[choices[-1].label].get("backend", backend), "scene_options": scene_options,
-                "models": labels, "equal_bytes": equal_bytes, "antialias": antialias, "primitives": counts,
+                "models": labels, "equal_bytes": equal_bytes, "antialias": antialias,
+                "random_downscale": random_downscale, "primitives": counts,
                 "train_views": len(scene.train), "test_views": len(scene.test)}
     report = {"runs": runs, "settings": settings}
     write_json(out / "compare.json", report)
@@ -191,12 +194,15 @@ def report_markdown(report: dict) -> str:
     conv = runs[first].get("conventions", {})
     budget = (f"equal bytes: each model as many primitives as fit in the trained size of {s['num_primitives']} of "
               f"`{first}`" if s.get("equal_bytes") else f"{s['num_primitives'] or 'all'} initial primitives")
+    downscaled = (f", {s['random_downscale']:g} of the training views at 1/2 or 1/4 size"
+                  if s.get("random_downscale") else "")
     lines = [
         f"# splatzoo compare: {', '.join(labels)}", "",
         f"Scene `{s['scene']}` ({s['train_views']} train / {s['test_views']} test views), {s['iterations']} iterations, "
         f"{'densification on' if s['densify'] else 'densification off'}, "
         f"{budget}, seed {s['seed']}, backend `{s['backend']}`"
-        f"{', anti-aliased (pixel-footprint filter)' if s.get('antialias') else ''}.", "",
+        f"{', anti-aliased (pixel-footprint filter)' if s.get('antialias') else ''}"
+        f"{downscaled}.", "",
         "| model | SSIM ↑ | PSNR ↑ | LPIPS ↓ | FPS | train s | size MB | primitives |",
         "|---|---|---|---|---|---|---|---|",
     ]

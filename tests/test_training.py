@@ -1,5 +1,6 @@
 """Training end to end: loss goes down, interrupted runs resume to the same result, CLI and compare outputs."""
 import json
+import math
 
 import pytest
 import torch
@@ -174,3 +175,35 @@ def test_densification_is_sane_at_any_run_length(tiny_data):
     densify_and_prune(net, opt, stats, grad_threshold=1e-9, scene_extent=scene.extent, min_opacity=0.0,
                       generator=torch.Generator().manual_seed(0), max_primitives=500, max_growth=0.5)
     assert net.num_primitives == 500
+
+
+def test_random_downscale_trains_some_views_smaller(tiny_data):
+    """--random-downscale: the chosen fraction of (step, view) pairs renders at 1/2 or 1/4 size against the image's
+    area average, drawn the same way every time (so a resumed run repeats them) and not from the view order's
+    generator."""
+    from splatzoo.evaluate import area_resize
+    from splatzoo.training.trainer import DOWNSCALES, Trainer
+    from splatzoo.zoo import make_config
+
+    scene = load_scene(tiny_data)
+    cfg = small_config(iterations=20, densify=False, antialias=True, random_downscale=0.5, backend="cpu")
+    t = Trainer.start(scene, "gabor", make_config("gabor"), cfg, "cpu", torch.device("cpu"))
+    draws = [t._downscale(v, step) for step in range(1, 41) for v in scene.train]
+    assert draws == [t._downscale(v, step) for step in range(1, 41) for v in scene.train]
+    small = [s for s in draws if s < 1]
+    assert 0.35 < len(small) / len(draws) < 0.65, len(small)
+    assert set(small) == set(DOWNSCALES)
+    state = t.gen.get_state()
+    step, view = next((s, v) for s in range(1, 41) for v in scene.train if t._downscale(v, s) == 0.25)
+    _, _, render, target, cam = t._loss(view, step)
+    assert torch.equal(t.gen.get_state(), state)
+    assert (cam.width, cam.height) == (12, 12) and render.rgb.shape[:2] == (12, 12)
+    assert torch.allclose(target, area_resize(view.image_float(), 12, 12))
+    assert torch.allclose(target.mean((0, 1)), view.image_float().mean((0, 1)), atol=1e-5)
+    for _ in range(5):
+        assert math.isfinite(t.step()["loss"])
+    none = Trainer.start(scene, "gabor", make_config("gabor"), small_config(random_downscale=0.0), "cpu",
+                         torch.device("cpu"))
+    assert all(none._downscale(v, s) == 1.0 for s in range(1, 21) for v in scene.train)
+    with pytest.raises(SplatzooError, match="random-downscale"):
+        small_config(random_downscale=1.5).validate()

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..errors import SplatzooError
+from ..evaluate import area_resize
 from ..rasterizers import rasterize
 from ..zoo import create_model, model_from_checkpoint
 from . import mcmc
@@ -24,6 +25,7 @@ PIXELS_PER_SURFEL = 128       # default densification budget: one surfel per thi
 MAX_GROWTH = 0.5              # one densification step adds at most this fraction of the current count
 STRATEGIES = ("adc", "mcmc")   # densification strategies (TrainConfig.strategy)
 ERROR_AVERAGE = 0.01          # the model's recent_error: an exponential average over about 1/this many steps
+DOWNSCALES = (0.5, 0.25)      # the smaller scales --random-downscale trains at
 
 
 def densify_budget(scene, initial: int) -> int:
@@ -68,6 +70,9 @@ class TrainConfig:
     antialias: bool = field(default=False, metadata={
         "help": "train (and render the model) with the pixel-footprint filter: sharp and alias-free when rendered "
                 "smaller than trained"})
+    random_downscale: float = field(default=0.0, metadata={
+        "help": "fraction of training views rendered at a random smaller scale (1/2 or 1/4) and compared with the "
+                "area-averaged image (multi-scale training; meant for --antialias)"})
     log_every: int = 10
 
     def validate(self) -> "TrainConfig":
@@ -80,6 +85,9 @@ class TrainConfig:
                 raise SplatzooError(f"training option {f.name} must not be negative, got {v}")
         if self.iterations < 1:
             raise SplatzooError(f"--iterations must be at least 1, got {self.iterations}")
+        if self.random_downscale > 1:
+            raise SplatzooError(f"--random-downscale is a fraction of the training views, 0 to 1; got "
+                                f"{self.random_downscale}")
         if self.strategy not in STRATEGIES:
             raise SplatzooError(f"--strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
         for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every", "batch_size", "nproc"):
@@ -198,18 +206,37 @@ class Trainer:
                 "train_seconds": self.train_seconds, "view_order": list(self.view_order),
                 "recent_error": self.net.recent_error}
 
+    def _view_generator(self, view, step: int, salt: int) -> torch.Generator:
+        """A generator of its own for each (step, view, purpose): the same draws on every rank and after a resume,
+        and none taken from the generator that orders the views."""
+        seed = (self.cfg.seed * 1_000_003 + step) * 65_537 + self.view_index.get(id(view), 0)
+        return torch.Generator().manual_seed(seed + (salt << 48))
+
+    def _downscale(self, view, step: int) -> float:
+        """1, or the smaller scale this (step, view) trains at under --random-downscale."""
+        p = self.cfg.random_downscale
+        if p <= 0:
+            return 1.0
+        draw = torch.rand(2, generator=self._view_generator(view, step, salt=1))
+        return DOWNSCALES[int(draw[1] * len(DOWNSCALES))] if float(draw[0]) < p else 1.0
+
     def _loss(self, view, step: int):
+        """The loss of one view, its photometric part, the render, the target and the camera rendered (smaller
+        than the view's under --random-downscale, the target then the image's area average)."""
         cfg = self.cfg
-        cam = view.camera.to(self.device, torch.float32)
         if self.random_background:
-            # a colour of its own for each (step, view): the same on every rank and after a resume, and drawn
-            # without touching the generator that orders the views
-            seed = (self.cfg.seed * 1_000_003 + step) * 65_537 + self.view_index.get(id(view), 0)
-            bg = torch.rand(3, generator=torch.Generator().manual_seed(seed))
-            target = view.image_float(background=bg).to(self.device)
+            # a colour of its own for each (step, view)
+            bg = torch.rand(3, generator=self._view_generator(view, step, salt=0))
+            target = view.image_float(background=bg)
             bg = bg.to(self.device)
         else:
-            target, bg = view.image_float().to(self.device), self.background
+            target, bg = view.image_float(), self.background
+        cam = view.camera
+        scale = self._downscale(view, step)
+        if scale < 1:
+            cam = cam.scaled(scale)
+            target = area_resize(target, cam.width, cam.height)
+        cam, target = cam.to(self.device, torch.float32), target.to(self.device)
         render = rasterize(self.net.surfels(cam), cam, backend=self.backend, background=bg,
                            settings=self.net.raster_settings)
         l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
@@ -239,7 +266,7 @@ class Trainer:
             for p in params:
                 p.grad = None
             loss.backward()
-            if track:
+            if track and cam.width == view.camera.width:  # densification decides on full-size views
                 self.stats.accumulate(self.net, cam)
             for p in params:
                 if p.grad is not None:
