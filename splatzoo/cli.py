@@ -490,7 +490,9 @@ def main() -> None:
         rank = int(os.environ.get("RANK", "0")) if launched_world() else None  # one of torchrun's processes
         if not (interrupted and rank):  # every rank stops alike: rank 0 alone says how to resume
             typer.echo(str(e) if interrupted else f"error{'' if rank is None else f' (rank {rank})'}: {e}", err=True)
-        sys.exit(getattr(e, "exit_code", 2))
+        code = getattr(e, "exit_code", 2)
+        # an interrupt outside the training loop (the final evaluation) reports 130 whichever signal it was
+        sys.exit(_received_signal[0] if interrupted and code == 130 and _received_signal else code)
     except SystemExit as e:
         # the command line layer ends an interrupt with exit 130 (or "Aborted!", 1); say which signal it was
         sys.exit(_received_signal[0] if _received_signal and e.code in (1, 130) else e.code)

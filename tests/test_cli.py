@@ -111,3 +111,25 @@ def test_one_model_syntax_for_every_command(tmp_path):
     assert inline["model_config"] == flags["model_config"] and inline["model_config"]["n_waves"] == 2
     result = runner.invoke(app, ["train", *common, "--out", str(tmp_path / "bad"), "--model", "gabor:n_waves"])
     assert result.exit_code != 0 and "key=value" in str(result.exception or result.output)
+
+
+def test_a_signal_during_the_final_evaluation_exits_with_its_own_code(monkeypatch, capsys):
+    """SIGTERM that lands after training, while the run evaluates, exits 143 (not Ctrl-C's 130)."""
+    import signal
+
+    import splatzoo.cli as cli
+    from splatzoo.runs import TrainingInterrupted
+
+    def app():
+        try:
+            cli._on_signal(signal.SIGTERM, None)
+        except KeyboardInterrupt:
+            raise TrainingInterrupted("training finished but its evaluation was interrupted", 130) from None
+
+    monkeypatch.setattr(cli, "app", app)
+    monkeypatch.setattr(signal, "signal", lambda *a: None)  # leave this process's handlers alone
+    monkeypatch.setattr(cli, "_received_signal", [])
+    with pytest.raises(SystemExit) as e:
+        cli.main()
+    assert e.value.code == 143
+    assert "evaluation was interrupted" in capsys.readouterr().err
