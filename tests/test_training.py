@@ -177,15 +177,17 @@ def test_densification_is_sane_at_any_run_length(tiny_data):
     assert net.num_primitives == 500
 
 
-def test_random_downscale_trains_some_views_smaller(tiny_data):
+def test_random_downscale_trains_some_views_smaller(tiny_data, monkeypatch):
     """--random-downscale: the chosen fraction of (step, view) pairs renders at 1/2 or 1/4 size against the image's
     area average, drawn the same way every time (so a resumed run repeats them) and not from the view order's
     generator."""
     from splatzoo.evaluate import area_resize
+    from splatzoo.training import trainer as trainer_module
     from splatzoo.training.trainer import DOWNSCALES, Trainer
     from splatzoo.zoo import make_config
 
-    scene = load_scene(tiny_data)
+    scene = load_scene(tiny_data)  # 48 px views
+    monkeypatch.setattr(trainer_module, "MIN_DOWNSCALED_SIDE", 12)
     cfg = small_config(iterations=20, densify=False, antialias=True, random_downscale=0.5, backend="cpu")
     t = Trainer.start(scene, "gabor", make_config("gabor"), cfg, "cpu", torch.device("cpu"))
     draws = [t._downscale(v, step) for step in range(1, 41) for v in scene.train]
@@ -205,5 +207,9 @@ def test_random_downscale_trains_some_views_smaller(tiny_data):
     none = Trainer.start(scene, "gabor", make_config("gabor"), small_config(random_downscale=0.0), "cpu",
                          torch.device("cpu"))
     assert all(none._downscale(v, s) == 1.0 for s in range(1, 21) for v in scene.train)
+    monkeypatch.setattr(trainer_module, "MIN_DOWNSCALED_SIDE", 20)  # 1/4 of 48 px is too small now
+    assert {t._downscale(v, s) for s in range(1, 41) for v in scene.train} == {1.0, 0.5}
+    monkeypatch.setattr(trainer_module, "MIN_DOWNSCALED_SIDE", 64)  # and every smaller scale
+    assert {t._downscale(v, s) for s in range(1, 41) for v in scene.train} == {1.0}
     with pytest.raises(SplatzooError, match="random-downscale"):
         small_config(random_downscale=1.5).validate()

@@ -25,7 +25,8 @@ PIXELS_PER_SURFEL = 128       # default densification budget: one surfel per thi
 MAX_GROWTH = 0.5              # one densification step adds at most this fraction of the current count
 STRATEGIES = ("adc", "mcmc")   # densification strategies (TrainConfig.strategy)
 ERROR_AVERAGE = 0.01          # the model's recent_error: an exponential average over about 1/this many steps
-DOWNSCALES = (0.5, 0.25)      # the smaller scales --random-downscale trains at
+DOWNSCALES = (0.5, 0.25)      # the smaller scales --random-downscale trains at ...
+MIN_DOWNSCALED_SIDE = 64      # ... where the view's shorter side stays at least this many pixels
 
 
 def densify_budget(scene, initial: int) -> int:
@@ -71,8 +72,8 @@ class TrainConfig:
         "help": "train (and render the model) with the pixel-footprint filter: sharp and alias-free when rendered "
                 "smaller than trained"})
     random_downscale: float = field(default=0.0, metadata={
-        "help": "fraction of training views rendered at a random smaller scale (1/2 or 1/4) and compared with the "
-                "area-averaged image (multi-scale training; meant for --antialias)"})
+        "help": "fraction of training views rendered at a random smaller scale (1/2 or 1/4, keeping at least 64 "
+                "px) and compared with the area-averaged image (multi-scale training; meant for --antialias)"})
     log_every: int = 10
 
     def validate(self) -> "TrainConfig":
@@ -217,8 +218,11 @@ class Trainer:
         p = self.cfg.random_downscale
         if p <= 0:
             return 1.0
+        side = min(view.camera.width, view.camera.height)
+        # smaller, the surfels shrink below a pixel and the view says little (measured: it costs full-size quality)
+        scales = [s for s in DOWNSCALES if side * s >= MIN_DOWNSCALED_SIDE]
         draw = torch.rand(2, generator=self._view_generator(view, step, salt=1))
-        return DOWNSCALES[int(draw[1] * len(DOWNSCALES))] if float(draw[0]) < p else 1.0
+        return scales[int(draw[1] * len(scales))] if scales and float(draw[0]) < p else 1.0
 
     def _loss(self, view, step: int):
         """The loss of one view, its photometric part, the render, the target and the camera rendered (smaller
