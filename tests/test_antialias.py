@@ -260,3 +260,19 @@ def test_ply_export_keeps_the_filter(tmp_path):
     model.antialias = True
     back = load_ply(save_ply(model, tmp_path / "aa.ply"))
     assert back.antialias and back.raster_settings == ANTIALIASED
+
+
+def test_wave_blur_of_a_nearly_edge_on_surfel_is_finite_in_float():
+    """A surfel seen nearly edge on has a huge, nearly singular centre footprint S (here ~1e8): det(I + S) cancels
+    to 0 or below in float32, and the blur came out infinite (a training run on the reference backend hit it). It
+    is computed in double, as the native backends do."""
+    from splatzoo.rasterizers.reference import waves_blur
+
+    T = torch.tensor([[1.1553786, -6.0863771, 93.766815], [0.78580368, -2.3110452, 25.974388],
+                      [-0.062161319, -0.055025149, 2.8617098]])[None]
+    centre = torch.tensor([[32.76601, 9.0765276]])
+    blur = torch.stack(waves_blur(T, centre, ANTIALIASED))
+    exact = torch.stack(waves_blur(T.double(), centre.double(), ANTIALIASED))
+    assert blur.dtype == torch.float32 and torch.isfinite(blur).all()
+    assert torch.allclose(blur.double(), exact, atol=1e-6)
+    assert 0 <= blur[0] <= 1 and 0 <= blur[2] <= 1  # I - P with P = (I + S)^-1 positive definite

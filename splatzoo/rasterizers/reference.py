@@ -189,14 +189,17 @@ def footprint_filter(u, v, jac, st: RasterSettings, hits):
 def waves_blur(T, center_px, st: RasterSettings):
     """The waves' blur I - (I + S)^-1 per surfel, (b00, b01, b11), with S the pixel footprint at the projected
     centre (common.centre_footprint): one blur for all the surfel's pixels, so each wave's gain exp(-k^T b k / 2) is
-    computed once per surfel. I where S is not finite (a surfel seen exactly edge on)."""
-    s00, s01, s11, _ = centre_footprint(T, center_px, st)
+    computed once per surfel. I where S is not finite (a surfel seen exactly edge on). In double, as the native
+    backends: for a surfel seen nearly edge on S is huge and nearly singular, and det(I + S) cancels to 0 in float."""
+    dtype = T.dtype
+    s00, s01, s11, _ = centre_footprint(T.double(), center_px.double(), st)
     finite = s00 + s11 < 1e30  # False for NaN and inf too
     s00, s01, s11 = (torch.where(finite, t, torch.zeros_like(t)) for t in (s00, s01, s11))
     det = (1 + s00) * (1 + s11) - s01 * s01
     one, zero = torch.ones_like(det), torch.zeros_like(det)
-    return (torch.where(finite, 1 - (1 + s11) / det, one), torch.where(finite, s01 / det, zero),
+    blur = (torch.where(finite, 1 - (1 + s11) / det, one), torch.where(finite, s01 / det, zero),
             torch.where(finite, 1 - (1 + s00) / det, one))
+    return tuple(b.to(dtype) for b in blur)
 
 
 def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None) -> torch.Tensor:
