@@ -215,8 +215,9 @@ def train_command(
                                    "sqrt(views per step), Adam betas to that power)"),
     nproc: int = typer.Option(1, "--nproc", help="data-parallel processes (torch.distributed: gloo on CPU, NCCL "
                               "on CUDA); each renders --batch-size views per step"),
-    antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render with the "
-                                   "pixel-footprint filter: alias-free when rendered smaller than trained"),
+    antialias: bool = typer.Option(True, "--antialias/--no-antialias", help="train and render with the "
+                                   "pixel-footprint filter: alias-free when rendered smaller than trained (off: "
+                                   "2DGS's screen filter, 1.1-1.3x faster on the CPU)"),
     random_downscale: float = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered "
                                            "at 1/2 or 1/4 size against the area-averaged image (with --antialias)"),
     viewer: bool = typer.Option(False, "--viewer", help="watch training live in the browser (see `splatzoo view`); "
@@ -371,8 +372,8 @@ def compare_command(
     equal_bytes: bool = typer.Option(False, "--equal-bytes", help="equal model size instead of equal count: the first "
                                      "model gets --num-primitives and its trained size (after pruning waves, if "
                                      "adaptive) is the budget; each other model gets as many as fit in it"),
-    antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render every model with the "
-                                   "pixel-footprint filter"),
+    antialias: bool = typer.Option(True, "--antialias/--no-antialias", help="train and render every model with the "
+                                   "pixel-footprint filter (off: 2DGS's screen filter)"),
     random_downscale: float = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered at "
                                            "1/2 or 1/4 size against the area-averaged image (with --antialias)"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
@@ -413,8 +414,8 @@ def sweep_command(
     quick: bool = typer.Option(False, "--quick", help="small synthetic scene (96x96) and a short schedule"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other settings"),
-    antialias: bool = typer.Option(False, "--antialias/--no-antialias", help="train and render every run with the "
-                                   "pixel-footprint filter"),
+    antialias: bool = typer.Option(True, "--antialias/--no-antialias", help="train and render every run with the "
+                                   "pixel-footprint filter (off: 2DGS's screen filter)"),
     backend: str = _BACKEND,
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,

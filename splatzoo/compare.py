@@ -65,7 +65,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             num_primitives: int | None = None, densify: bool = False, quick: bool = False, seed: int = 0,
             backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
             synthetic_scene: str | None = None, overwrite: bool = False, equal_bytes: bool = False,
-            antialias: bool = False, random_downscale: float = 0.0) -> dict:
+            antialias: bool = True, random_downscale: float = 0.0) -> dict:
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
     synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the stored

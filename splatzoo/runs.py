@@ -188,7 +188,8 @@ class Run:
         rec = record or self.record()
         known = {f.name for f in dataclasses.fields(TrainConfig)}
         try:
-            return TrainConfig(**{k: v for k, v in rec["train"].items() if k in known}).validate()
+            stored = {**TrainConfig.stored_defaults, **rec["train"]}
+            return TrainConfig(**{k: v for k, v in stored.items() if k in known}).validate()
         except TypeError as e:
             raise SplatzooError(f"run configuration {self.config_path} has an invalid training config ({e})") from None
 

@@ -50,7 +50,7 @@ def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2
           num_primitives=(1000, 2000, 4000), iterations: int | None = None, quick: bool = False, seed: int = 0,
           backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
           synthetic_scene: str | None = None, model_options: dict | None = None, overwrite: bool = False,
-          antialias: bool = False) -> dict:
+          antialias: bool = True) -> dict:
     """Train the grid and write sweep.json, pareto.png and report.md into `out`; returns the sweep.json content.
     `antialias` trains and renders every run with the pixel-footprint filter.
 

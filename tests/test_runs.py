@@ -138,7 +138,7 @@ def test_compare_at_equal_bytes(tiny_data, tmp_path):
     assert "equal bytes" in (out / "report.md").read_text() and "equal bytes" in r.output
     r = runner.invoke(app, base)
     assert r.exit_code != 0 and "num_primitives" in str(r.exception)
-    r = runner.invoke(app, base + ["--equal-bytes", "--antialias"])  # another setting too: no silent reuse
+    r = runner.invoke(app, base + ["--equal-bytes", "--no-antialias"])  # another setting too: no silent reuse
     assert r.exit_code != 0 and "antialias" in str(r.exception)
     r = runner.invoke(app, base + ["--equal-bytes", "--antialias", "--overwrite"])
     assert r.exit_code == 0, r.output
@@ -346,3 +346,16 @@ def test_bad_values_and_full_disk(tiny_data, tmp_path, monkeypatch):
         quick_train(tiny_data, run, resume=True)
     assert (run / "checkpoint.pt").read_bytes() == before
     assert [p.name for p in run.iterdir() if p.name.startswith(".checkpoint")] == []
+
+
+def test_runs_from_before_the_antialiased_default_resume_without_it(tiny_data, tmp_path):
+    """Anti-aliasing is on by default now; a run record written before the option existed lacks the key and meant
+    off, so its resume must not switch the filter on halfway."""
+    run = tmp_path / "run"
+    quick_train(tiny_data, run, config=TrainConfig(iterations=2, backend="cpu"))
+    assert Run(run).train_config().antialias is True  # the default
+    rec = json.loads((run / "config.json").read_text())
+    del rec["train"]["antialias"]
+    (run / "config.json").write_text(json.dumps(rec))
+    assert Run(run).train_config().antialias is False
+    assert TrainConfig().antialias is True

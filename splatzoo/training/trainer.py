@@ -8,6 +8,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 
@@ -68,13 +69,18 @@ class TrainConfig:
     checkpoint_every: int = field(default=2000, metadata={"operational": True})     # iterations (not scaled)
     checkpoint_minutes: float = field(default=5.0, metadata={"operational": True})  # also by time; 0: off
     eval_every: int = 0            # test PSNR every this many iterations; 0: ten times per run
-    antialias: bool = field(default=False, metadata={
+    antialias: bool = field(default=True, metadata={
         "help": "train (and render the model) with the pixel-footprint filter: sharp and alias-free when rendered "
-                "smaller than trained"})
+                "smaller than trained, and as good or better at full size (off: the screen-space filter of 2DGS, "
+                "1.1-1.3x faster on the CPU)"})
     random_downscale: float = field(default=0.0, metadata={
         "help": "fraction of training views rendered at a random smaller scale (1/2 or 1/4, keeping at least 64 "
                 "px) and compared with the area-averaged image (multi-scale training; meant for --antialias)"})
     log_every: int = 10
+
+    # what a stored record written before an option's default changed meant where it lacks the key: runs from
+    # before the anti-aliased default were trained without it
+    stored_defaults: ClassVar[dict] = {"antialias": False}
 
     def validate(self) -> "TrainConfig":
         """A clear error for values no run can use (NaN weights, zero iterations, negative counts)."""
