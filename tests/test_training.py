@@ -213,3 +213,31 @@ def test_random_downscale_trains_some_views_smaller(tiny_data, monkeypatch):
     assert {t._downscale(v, s) for s in range(1, 41) for v in scene.train} == {1.0}
     with pytest.raises(SplatzooError, match="random-downscale"):
         small_config(random_downscale=1.5).validate()
+
+
+def test_wave_l1_pulls_unneeded_waves_to_zero(tiny_data):
+    """gabor:wave_l1: the model's penalty is wave_l1 x sum |w| (None when off, and for models without waves), the
+    trainer adds it, and a run with it ends with smaller wave weights than one without."""
+    import math as _math
+
+    from splatzoo import create_model
+    from splatzoo.zoo import make_config
+
+    pts, cols = torch.rand(50, 3), torch.rand(50, 3)
+    assert create_model("gabor", pts, cols).regularizer() is None
+    assert create_model("2dgs", pts, cols).regularizer() is None
+    net = create_model("gabor", pts, cols, wave_l1=1e-3)
+    penalty = net.regularizer()
+    assert torch.allclose(penalty, 1e-3 * net.wave_weights.abs().sum())
+    penalty.backward()
+    assert torch.allclose(net.wave_weights.grad, 1e-3 * torch.sign(net.wave_weights.detach()))
+    for bad in (-1.0, _math.nan, _math.inf):
+        with pytest.raises(SplatzooError, match="wave_l1"):
+            make_config("gabor", wave_l1=bad)
+    scene = load_scene(tiny_data)
+    weights = {}
+    for l1 in (0.0, 1e-2):
+        result = train(scene, "gabor", {"wave_l1": l1}, small_config(iterations=60, densify=False, backend="cpu"),
+                       tiny_data.parent / f"l1-{l1}", progress=False, evaluate_at_end=False)
+        weights[l1] = result.model.wave_weights.detach().abs().mean().item()
+    assert weights[1e-2] < 0.5 * weights[0.0], weights

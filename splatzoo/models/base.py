@@ -141,6 +141,10 @@ class SplatModel(nn.Module):
         """Model-specific numbers worth reporting next to the metrics (e.g. active waves); {} by default."""
         return {}
 
+    def regularizer(self) -> torch.Tensor | None:
+        """A penalty the trainer adds to every view's loss (e.g. sparsity on the waves); None by default."""
+        return None
+
     def on_step(self, step: int, train_config: Any, optimizer: torch.optim.Optimizer) -> dict | None:
         """Called by the trainer after every optimiser step (and after densification), with the run's TrainConfig.
         A model may edit itself here (e.g. drop unused waves); it must then keep `optimizer` pointing at its

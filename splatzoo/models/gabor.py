@@ -65,6 +65,10 @@ class GaborConfig:
         "help": "the start of --color-param paper: paper (the public release's: cA = point colour, cB = 0, weights "
                 "0.1 U(0,1), a dark start) or surfel (the 2DGS surfel it would be: weights 1/N, cA and cB the point "
                 "colour +- a small offset); see BENCHMARKS.md"})
+    wave_l1: float = field(default=0.0, metadata={
+        "help": "L1 penalty on the wave weights (their sum over surfels and waves, added to the loss): waves the "
+                "images do not ask for decay to zero; 1e-5 makes plain colour look like 2DGS (LPIPS) at some cost "
+                "on fine texture, see BENCHMARKS.md; 0: off"})
     prune_from: float = field(default=0.5, metadata={
         "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow; "
                 "with densification on, pruning also waits until the last opacity reset has recovered)"})
@@ -81,6 +85,8 @@ class GaborConfig:
             raise ShapeError(f"sh_degree must be 0, 1, 2 or 3, got {self.sh_degree}")
         if not float(self.prune_waves) >= 0:
             raise ShapeError(f"prune_waves must be >= 0 (0: off), got {self.prune_waves}")
+        if not 0 <= float(self.wave_l1) < math.inf:
+            raise ShapeError(f"wave_l1 must be a finite number >= 0 (0: off), got {self.wave_l1}")
         if not float(self.prune_relative) >= 0:
             raise ShapeError(f"prune_relative must be >= 0 (0: off), got {self.prune_relative}")
         if float(self.prune_waves) > 0 and float(self.prune_relative) > 0:
@@ -235,6 +241,13 @@ class GaborModel(SurfelModel):
         if self.config.sh_degree > 0:
             groups.append({"name": "sh_rest", "params": [self.sh_rest], "lr": 2.5e-3 / 20})  # 2DGS's SH rest rate
         return groups
+
+    def regularizer(self) -> torch.Tensor | None:
+        """wave_l1 x the sum of |wave weight| (removed waves' slots hold zeros): Adam turns its constant pull into
+        steps toward zero wherever the images' gradient does not hold a wave up."""
+        if float(self.config.wave_l1) <= 0:
+            return None
+        return float(self.config.wave_l1) * self.wave_weights.abs().sum()
 
     # --- adaptive waves ---------------------------------------------------------------------------------------
     def on_step(self, step: int, train_config, optimizer) -> dict | None:

@@ -253,6 +253,9 @@ class Trainer:
         loss = l_photo
         if self.mcmc:
             loss = loss + mcmc.regulariser(self.net)
+        penalty = self.net.regularizer()  # the model's own (e.g. sparse waves)
+        if penalty is not None:
+            loss = loss + penalty
         if cfg.lambda_normal > 0 and step > cfg.at(cfg.normal_from):
             loss = loss + cfg.lambda_normal * normal_consistency_loss(render, cam)
         if cfg.lambda_dist > 0 and step > cfg.at(cfg.dist_from):
