@@ -224,10 +224,10 @@ def test_wave_l1_pulls_unneeded_waves_to_zero(tiny_data):
     from splatzoo.zoo import make_config
 
     pts, cols = torch.rand(50, 3), torch.rand(50, 3)
-    assert create_model("gabor", pts, cols).regularizer() is None
-    assert create_model("2dgs", pts, cols).regularizer() is None
+    assert create_model("gabor", pts, cols).regulariser() is None
+    assert create_model("2dgs", pts, cols).regulariser() is None
     net = create_model("gabor", pts, cols, wave_l1=1e-3)
-    penalty = net.regularizer()
+    penalty = net.regulariser()
     assert torch.allclose(penalty, 1e-3 * net.wave_weights.abs().sum())
     penalty.backward()
     assert torch.allclose(net.wave_weights.grad, 1e-3 * torch.sign(net.wave_weights.detach()))

@@ -141,7 +141,7 @@ class SplatModel(nn.Module):
         """Model-specific numbers worth reporting next to the metrics (e.g. active waves); {} by default."""
         return {}
 
-    def regularizer(self) -> torch.Tensor | None:
+    def regulariser(self) -> torch.Tensor | None:
         """A penalty the trainer adds to every view's loss (e.g. sparsity on the waves); None by default."""
         return None
 

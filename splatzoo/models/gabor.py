@@ -242,7 +242,7 @@ class GaborModel(SurfelModel):
             groups.append({"name": "sh_rest", "params": [self.sh_rest], "lr": 2.5e-3 / 20})  # 2DGS's SH rest rate
         return groups
 
-    def regularizer(self) -> torch.Tensor | None:
+    def regulariser(self) -> torch.Tensor | None:
         """wave_l1 x the sum of |wave weight| (removed waves' slots hold zeros): Adam turns its constant pull into
         steps toward zero wherever the images' gradient does not hold a wave up."""
         if float(self.config.wave_l1) <= 0:

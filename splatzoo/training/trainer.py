@@ -253,7 +253,7 @@ class Trainer:
         loss = l_photo
         if self.mcmc:
             loss = loss + mcmc.regulariser(self.net)
-        penalty = self.net.regularizer()  # the model's own (e.g. sparse waves)
+        penalty = self.net.regulariser()  # the model's own (e.g. sparse waves)
         if penalty is not None:
             loss = loss + penalty
         if cfg.lambda_normal > 0 and step > cfg.at(cfg.normal_from):
