@@ -20,13 +20,15 @@ from pathlib import Path
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="sweater,vest")
-    ap.add_argument("--models", default="gabor,2dgs")
+    ap.add_argument("--models", default="gabor,2dgs", help="comma-separated, each as `splatzoo compare` takes it, e.g. "
+                                                          "gabor:n_waves=8,wave_l1=0,2dgs")
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--iterations", type=int, default=1500)
     ap.add_argument("--scales", default="0.5,0.25")
     ap.add_argument("--modes", default="off,on", help="off, on, downscale (comma-separated)")
     ap.add_argument("--random-downscale", type=float, default=0.5, help="the fraction for the downscale mode")
     args = ap.parse_args(argv)
+    from splatzoo.compare import parse_model_list
     from splatzoo.data.synthetic import make_synthetic_scene
     from splatzoo.evaluate import parse_scales
     from splatzoo.runs import evaluate_run, train
@@ -40,22 +42,22 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.scenes.split(","):
             data = make_synthetic_scene(scene, Path(tmp) / scene, views=24, width=args.size, height=args.size)
-            for model in args.models.split(","):
+            for index, choice in enumerate(parse_model_list(args.models)):
                 for mode in args.modes.split(","):
                     if mode not in ("off", "on", "downscale"):
                         raise SystemExit(f"--modes: off, on or downscale, got {mode!r}")
                     cfg = TrainConfig(iterations=args.iterations, num_primitives=2000, densify=False, backend="cpu",
                                       antialias=mode != "off",
                                       random_downscale=args.random_downscale if mode == "downscale" else 0.0)
-                    out = Path(tmp) / f"{scene}-{model}-{mode}"
+                    out = Path(tmp) / f"{scene}-{index}-{mode}"
                     t0 = time.perf_counter()
-                    train(data, model, {}, cfg, out, progress=False)
+                    train(data, choice.model, choice.options, cfg, out, progress=False)
                     wall = time.perf_counter() - t0
                     m = evaluate_run(out, backend="cpu", scales=scales)
                     cells = "".join(f" {m['scales'][f'{s:g}']['psnr']:.2f} | "
                                     f"{m['scales'][f'{s:g}']['consistency_psnr']:.2f} |" for s in scales)
                     label = f"on, {cfg.random_downscale:g} downscaled" if mode == "downscale" else mode
-                    print(f"| {scene} | {model} | {label} | {m['psnr']:.2f} |{cells} {wall:.0f} |",
+                    print(f"| {scene} | {choice.label} | {label} | {m['psnr']:.2f} |{cells} {wall:.0f} |",
                           flush=True)
     return 0
 

@@ -25,12 +25,12 @@ def main(argv=None) -> int:
     ap.add_argument("--models", default="2dgs,gabor", help="models, as `splatzoo compare` takes them; the first sets "
                                                            "the budget")
     args = ap.parse_args(argv)
-    from splatzoo.compare import bytes_per_primitive, parse_model_arg
+    from splatzoo.compare import bytes_per_primitive, parse_model_list
     from splatzoo.data.synthetic import make_synthetic_scene
     from splatzoo.runs import train
     from splatzoo.training import TrainConfig
 
-    first, *others = [parse_model_arg(m) for m in args.models.split(",")]
+    first, *others = parse_model_list(args.models)
     print(f"{args.size}x{args.size}, 24 views, fixed count, {args.iterations} iterations")
     print("| scene | pixels / primitive (first) | model | primitives | bytes | PSNR | SSIM | LPIPS | PSNR - first |")
     print("|---|---|---|---|---|---|---|---|---|")

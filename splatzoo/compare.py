@@ -61,6 +61,23 @@ def parse_model_arg(arg: str) -> ModelChoice:
     return ModelChoice(arg, name, options)
 
 
+def parse_model_list(text: str) -> list[ModelChoice]:
+    """A comma-separated list of models, each as parse_model_arg takes it: 'gabor:n_waves=8,wave_l1=0,2dgs' is two
+    models (an item with '=' and no ':' is one more option of the model before it; model names hold no '=')."""
+    from .errors import SplatzooError
+
+    words: list[str] = []
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        if "=" in item and ":" not in item:
+            if not words:
+                raise SplatzooError(f"model list {text!r} starts with an option ({item!r}); name the model first, "
+                                    "e.g. gabor:n_waves=8")
+            words[-1] += "," + item
+        else:
+            words.append(item)
+    return [parse_model_arg(w) for w in words]
+
+
 def compare(models: list[str], data=None, out="runs/compare", *, iterations: int | None = None,
             num_primitives: int | None = None, densify: bool = False, quick: bool = False, seed: int = 0,
             backend: str = "auto", scene_options: dict | None = None, progress: bool = True,

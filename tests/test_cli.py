@@ -113,6 +113,19 @@ def test_one_model_syntax_for_every_command(tmp_path):
     assert result.exit_code != 0 and "key=value" in str(result.exception or result.output)
 
 
+def test_model_lists_split_between_models_not_between_options():
+    """The benchmarks' --models lists: an item with '=' and no ':' belongs to the model before it."""
+    from splatzoo.compare import parse_model_list
+    from splatzoo.errors import SplatzooError
+
+    got = parse_model_list("gabor:n_waves=8,wave_l1=0,2dgs, gabor:prune_relative=2")
+    assert [(c.label, c.model, c.options) for c in got] == [
+        ("gabor:n_waves=8,wave_l1=0", "gabor", {"n_waves": "8", "wave_l1": "0"}), ("2dgs", "2dgs", {}),
+        ("gabor:prune_relative=2", "gabor", {"prune_relative": "2"})]
+    with pytest.raises(SplatzooError, match="name the model first"):
+        parse_model_list("n_waves=8,gabor")
+
+
 def test_a_signal_during_the_final_evaluation_exits_with_its_own_code(monkeypatch, capsys):
     """SIGTERM that lands after training, while the run evaluates, exits 143 (not Ctrl-C's 130)."""
     import signal
