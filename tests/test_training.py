@@ -216,15 +216,22 @@ def test_random_downscale_trains_some_views_smaller(tiny_data, monkeypatch):
 
 
 def test_wave_l1_pulls_unneeded_waves_to_zero(tiny_data):
-    """gabor:wave_l1: the model's penalty is wave_l1 x sum |w| (None when off, and for models without waves), the
-    trainer adds it, and a run with it ends with smaller wave weights than one without."""
+    """gabor:wave_l1: the model's penalty is wave_l1 x sum |w| (by default WAVE_L1; None when off, for the paper's
+    colours and for models without waves), the trainer adds it, and a run with it ends with smaller wave weights
+    than one without."""
     import math as _math
 
     from splatzoo import create_model
+    from splatzoo.models.gabor import WAVE_L1
     from splatzoo.zoo import make_config
 
     pts, cols = torch.rand(50, 3), torch.rand(50, 3)
-    assert create_model("gabor", pts, cols).regulariser() is None
+    default = create_model("gabor", pts, cols)
+    assert torch.allclose(default.regulariser(), WAVE_L1 * default.wave_weights.abs().sum())
+    assert create_model("gabor", pts, cols, wave_l1=0).regulariser() is None
+    assert create_model("gabor", pts, cols, color_param="paper").regulariser() is None
+    with pytest.raises(SplatzooError, match="residual only"):
+        make_config("gabor", color_param="paper", wave_l1=1e-3)
     assert create_model("2dgs", pts, cols).regulariser() is None
     net = create_model("gabor", pts, cols, wave_l1=1e-3)
     penalty = net.regulariser()

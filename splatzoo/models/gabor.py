@@ -42,6 +42,9 @@ from .base import SurfelModel, view_directions
 INIT_OFFSET = 0.05  # init="surfel": half the colour difference cA - cB, per channel, at most
 # color_param="residual": the base colour's rate is 2DGS's (2.5e-3 on its SH DC coefficient, in colour units x SH_C0)
 BASE_COLOR_LR = 2.5e-3 * SH_C0
+# the default sparse-wave penalty: the smallest of those measured that keeps plain colour as 2DGS renders it (LPIPS
+# within 0.002 over white, three seeds) and costs fine texture least (BENCHMARKS.md, "Sparse waves by default")
+WAVE_L1 = 3e-6
 PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
 
 
@@ -65,16 +68,18 @@ class GaborConfig:
         "help": "the start of --color-param paper: paper (the public release's: cA = point colour, cB = 0, weights "
                 "0.1 U(0,1), a dark start) or surfel (the 2DGS surfel it would be: weights 1/N, cA and cB the point "
                 "colour +- a small offset); see BENCHMARKS.md"})
-    wave_l1: float = field(default=0.0, metadata={
-        "help": "L1 penalty on the wave weights (their sum over surfels and waves, added to the loss): waves the "
-                "images do not ask for decay to zero; 1e-5 makes plain colour look like 2DGS (LPIPS) at some cost "
-                "on fine texture, see BENCHMARKS.md; 0: off"})
+    wave_l1: float = field(default=WAVE_L1, metadata={
+        "help": "L1 penalty on the residual waves' weights (wave_l1 x their sum over surfels and waves, added to the "
+                "loss): waves the images do not ask for decay to zero, so plain colour looks as 2DGS's does (LPIPS) "
+                "while fine texture keeps its waves; see BENCHMARKS.md. 0: off. color_param=residual only (in the "
+                "paper's form the weights carry the base colour too)"})
     prune_from: float = field(default=0.5, metadata={
         "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow; "
                 "with densification on, pruning also waits until the last opacity reset has recovered)"})
 
     # what a stored config written before an option existed meant: files from before `color_param` are "paper" models
-    stored_defaults: ClassVar[dict] = {"color_param": "paper"}
+    # and files from before the sparse-wave default trained without the penalty
+    stored_defaults: ClassVar[dict] = {"color_param": "paper", "wave_l1": 0.0}
 
     def __post_init__(self):
         if int(self.n_waves) < 1:
@@ -96,6 +101,9 @@ class GaborConfig:
             raise ShapeError(f"color_param must be residual or paper, got {self.color_param!r}")
         if self.init not in ("surfel", "paper"):
             raise ShapeError(f"init must be surfel or paper, got {self.init!r}")
+        if self.color_param == "paper" and float(self.wave_l1) not in (0.0, WAVE_L1):
+            raise ShapeError("wave_l1 applies to color_param=residual only: in the paper's form the wave weights carry "
+                             "the base colour too, so shrinking them would darken the surfel")
         if self.color_param == "residual" and self.init != "paper":
             raise ShapeError(f"init={self.init!r} starts the paper's colour parametrisation; add color_param=paper "
                              "(--color-param paper), or drop it: the residual one has its own start")
@@ -244,8 +252,8 @@ class GaborModel(SurfelModel):
 
     def regulariser(self) -> torch.Tensor | None:
         """wave_l1 x the sum of |wave weight| (removed waves' slots hold zeros): Adam turns its constant pull into
-        steps toward zero wherever the images' gradient does not hold a wave up."""
-        if float(self.config.wave_l1) <= 0:
+        steps toward zero wherever the images' gradient does not hold a wave up. None for the paper's colours."""
+        if float(self.config.wave_l1) <= 0 or not self.residual:
             return None
         return float(self.config.wave_l1) * self.wave_weights.abs().sum()
 
