@@ -197,8 +197,9 @@ def test_random_downscale_trains_some_views_smaller(tiny_data, monkeypatch):
     assert set(small) == set(DOWNSCALES)
     state = t.gen.get_state()
     step, view = next((s, v) for s in range(1, 41) for v in scene.train if t._downscale(v, s) == 0.25)
-    _, _, render, target, cam = t._loss(view, step)
-    assert torch.equal(t.gen.get_state(), state)
+    out = t._loss(view, step)
+    render, target, cam = out.render, out.target, out.camera
+    assert torch.equal(t.gen.get_state(), state) and out.scale == 0.25
     assert (cam.width, cam.height) == (12, 12) and render.rgb.shape[:2] == (12, 12)
     assert torch.allclose(target, area_resize(view.image_float(), 12, 12))
     assert torch.allclose(target.mean((0, 1)), view.image_float().mean((0, 1)), atol=1e-5)

@@ -8,13 +8,14 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import torch
 
 from ..errors import SplatzooError
 from ..evaluate import area_resize
 from ..rasterizers import rasterize
+from ..types import Camera, RenderOutput
 from ..zoo import create_model, model_from_checkpoint
 from . import mcmc
 from .densify import DensifyStats, densify_and_prune, reset_opacity
@@ -144,6 +145,16 @@ def _position_lr(cfg: TrainConfig, step: int, extent: float) -> float:
     return extent * math.exp(math.log(cfg.position_lr_init) * (1 - t) + math.log(cfg.position_lr_final) * t)
 
 
+class ViewLoss(NamedTuple):
+    """One view's loss and what it was computed from."""
+    loss: torch.Tensor      # everything the view adds: photometric and regularisers
+    photo: torch.Tensor     # the photometric part
+    render: RenderOutput
+    target: torch.Tensor    # the image it was compared with (area-averaged when the view was rendered smaller)
+    camera: Camera          # the camera rendered
+    scale: float            # 1, or the smaller scale --random-downscale drew
+
+
 class Trainer:
     """The state of one training run (model, optimizer, densification statistics, random generator, position in
     the view order) and one `step()` of the loop. Files, signals and progress belong to the runs layer
@@ -230,9 +241,8 @@ class Trainer:
         draw = torch.rand(2, generator=self._view_generator(view, step, salt=1))
         return scales[int(draw[1] * len(scales))] if scales and float(draw[0]) < p else 1.0
 
-    def _loss(self, view, step: int):
-        """The loss of one view, its photometric part, the render, the target and the camera rendered (smaller
-        than the view's under --random-downscale, the target then the image's area average)."""
+    def _loss(self, view, step: int) -> ViewLoss:
+        """The loss of one view (at a smaller scale for some draws of --random-downscale)."""
         cfg = self.cfg
         if self.random_background:
             # a colour of its own for each (step, view)
@@ -263,7 +273,7 @@ class Trainer:
         if not torch.isfinite(loss):
             raise SplatzooError(f"loss became {loss.item()} at iteration {step}; lower the learning rates or "
                                 "report the scene (the run keeps its last checkpoint)")
-        return loss, l_photo, render, target, cam
+        return ViewLoss(loss, l_photo, render, target, cam, scale)
 
     def _backward(self, views: list, step: int, track: bool):
         """Sum of the views' gradients, divided by the step's view count (over all ranks) once summed over ranks.
@@ -275,11 +285,11 @@ class Trainer:
         losses, photos = [], []
         error = torch.zeros((), device=self.device)
         for view in views:
-            loss, l_photo, render, target, cam = self._loss(view, step)
+            loss, l_photo, render, target, cam, scale = self._loss(view, step)
             for p in params:
                 p.grad = None
             loss.backward()
-            if track and cam.width == view.camera.width:  # densification decides on full-size views
+            if track and scale == 1:  # densification decides on full-size views
                 self.stats.accumulate(self.net, cam)
             for p in params:
                 if p.grad is not None:
