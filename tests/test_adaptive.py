@@ -1,6 +1,7 @@
 """Adaptive waves: the Surfels.wave_counts contract, wave pruning in the gabor model, its packed checkpoint,
 densification with pruned waves, the trainer hook, and view-dependent (SH) colour for the gabor family."""
 import json
+import math
 
 import pytest
 import torch
@@ -257,7 +258,7 @@ def test_relative_threshold_follows_the_training_error(tmp_path):
     from splatzoo.runs import Run, train
     from splatzoo.training import TrainConfig
 
-    with pytest.raises(ShapeError, match="not both"):
+    with pytest.raises(ShapeError, match="one pruning criterion"):
         splatzoo.create_model("gabor", prune_waves=0.01, prune_relative=0.2)
     with pytest.raises(ShapeError, match="prune_relative"):
         splatzoo.create_model("gabor", prune_relative=-1.0)
@@ -274,6 +275,67 @@ def test_relative_threshold_follows_the_training_error(tmp_path):
     assert 0.001 < error < 0.5 and res.model.summary()["waves_active"] < 150 * 4
     state = Run(tmp_path / "run").checkpoint()
     assert state["recent_error"] == pytest.approx(error)
+
+
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
+def test_a_trial_removal_renders_what_pruning_leaves(color_param):
+    """prune_psnr measures a pruning before making it: the trial surfels render as the pruned model does."""
+    m = adaptive_model(threshold=0.0, prune_psnr=0.05, color_param=color_param)
+    with torch.no_grad():
+        m.wave_freqs.mul_(0.3)  # waves with a visible mean, which the base colour must take over
+        m.wave_weights[:10] *= 0.001  # these surfels lose every wave
+    mean, contribution = m.wave_statistics()
+    threshold = float(contribution.median())
+    trial = m._surfels_without(CAM, m.active_slots() & (contribution < threshold), mean)
+    with torch.no_grad():
+        expected = rasterize(trial, CAM, backend="reference").rgb
+    assert m.prune_waves(threshold)["removed"] > 0 and m.wave_counts[:10].eq(0).all()
+    torch.testing.assert_close(render(m).rgb, expected, atol=1e-5, rtol=0)
+
+
+def test_measured_threshold_removes_what_costs_nothing_and_keeps_what_costs():
+    """Half the waves are zero: removing them costs no PSNR, removing any other costs more than the tolerance, so
+    the bisection removes exactly the zero waves; with a generous tolerance it removes everything."""
+    m = adaptive_model(threshold=0.0, prune_psnr=0.01)
+    with torch.no_grad():
+        m.wave_weights[:, 2:] = 0.0
+        m.wave_weights[:, :2] = 0.5 + m.wave_weights[:, :2]  # clearly visible
+        target = render(m).rgb + 0.01  # an error the waves do not explain
+    calls = []
+
+    def probe_error(surfels_of):
+        calls.append(1)
+        with torch.no_grad():
+            return float((rasterize(surfels_of(CAM), CAM, backend="cpu").rgb - target).square().mean())
+
+    m.probe_error = probe_error
+    before = probe_error(m.surfels)
+    assert m.measured_threshold(0.01) > 0 and len(calls) <= 1 + 1 + 7  # the reference and the bisection's trials
+    removed = m.prune_waves(m.measured_threshold(0.01))["removed"]
+    # every zero wave goes, and of the others only those that cost nothing (on surfels the camera does not see)
+    assert removed >= 64 * 2 and m.wave_counts.le(2).all() and m.wave_counts.sum() > 64
+    assert 10 * math.log10(probe_error(m.surfels) / before) <= 0.01
+    m.prune_waves(m.measured_threshold(100.0))
+    assert m.wave_counts.eq(0).all()
+    with pytest.raises(ShapeError, match="prune_psnr"):
+        splatzoo.create_model("gabor", prune_psnr=-0.1)
+
+
+def test_trainer_prunes_by_measured_cost(tmp_path):
+    """prune_psnr in training: the trainer's probe views price each pruning; a tiny budget keeps visible waves that a
+    large one removes."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.runs import train
+    from splatzoo.training import TrainConfig
+
+    data = make_synthetic_scene("sweater", tmp_path / "sweater", views=6, width=32, height=32)
+    cfg = TrainConfig(iterations=80, num_primitives=150, densify=False, log_every=10, eval_every=80)
+    kept = {}
+    for budget in (1e-4, 30.0):
+        res = train(data, "gabor", {"prune_psnr": budget, "prune_from": 0.5}, cfg, tmp_path / f"run{budget}",
+                    progress=False, evaluate_at_end=False)
+        kept[budget] = res.model.summary()["waves_active"]
+    assert kept[30.0] == 0 and kept[1e-4] > 0
 
 
 # ---- view-dependent colour --------------------------------------------------------------------------------------

@@ -48,6 +48,10 @@ class SplatModel(nn.Module):
     # an exponential average over about 100 steps, colour units for images in [0,1]), set by the trainer before each
     # on_step; None outside training
     recent_error: float | None = None
+    # probe_error(surfels_of): the mean squared colour error over a fixed few training views, each rendered from
+    # surfels_of(camera) (no gradient); set by the trainer before each on_step, so a model can measure what an edit
+    # would cost before making it. None outside training
+    probe_error: Any = None
 
     def __init__(self, config: Any, num_primitives: int = 0):
         super().__init__()

@@ -12,9 +12,11 @@ Either is the rasterizer's wave bank with k_i = 2 pi f_i (cos theta_i, sin theta
 (d = (cA - cB)/2 for "paper").
 
 Two options beyond the paper:
-- prune_waves > 0 or prune_relative > 0 (adaptive waves): during training, waves whose visible contribution falls
-  below the threshold (fixed, or a fraction of the recent training error) are removed, so a surfel on flat colour
-  ends as a plain 2DGS surfel. A wave's contribution is what its surfel shows
+- prune_waves, prune_relative or prune_psnr > 0 (adaptive waves): during training, waves whose visible contribution
+  falls below a threshold are removed, so a surfel on flat colour ends as a plain 2DGS surfel. The threshold is fixed
+  (prune_waves), a fraction of the recent training error (prune_relative), or measured (prune_psnr): the largest
+  whose pruning costs the trainer's probe views at most that many dB, found by rendering them with and without the
+  faintest waves. A wave's contribution is what its surfel shows
   of it beyond a constant: opacity x the RMS, over the surfel's Gaussian, of the wave's zero-mean part (largest
   channel). Its mean over the Gaussian, a cos(phi) exp(-|k|^2/2) (the Gaussian's characteristic function), is kept,
   so removing a wave leaves each surfel's mean colour exactly as it was: "residual" adds it to c0; "paper" folds it
@@ -27,6 +29,7 @@ Two options beyond the paper:
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -46,6 +49,8 @@ BASE_COLOR_LR = 2.5e-3 * SH_C0
 # within 0.002 over white, three seeds) and costs fine texture least (BENCHMARKS.md, "Sparse waves by default")
 WAVE_L1 = 3e-6
 PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
+MEASURED_PRUNINGS = 8  # prune_psnr: about this many measured prunings over the pruning period (and one at the end)
+BISECTION_STEPS = 7    # prune_psnr: the share of waves removed is found to 1/2^this of the active waves
 
 
 @dataclass
@@ -64,6 +69,10 @@ class GaborConfig:
         "help": "adaptive waves with a threshold relative to the fit: remove waves whose visible contribution is "
                 "below this multiple of the recent mean absolute training error on the covered pixels, e.g. 2 (a "
                 "scene fitted to 40 dB keeps fainter waves than one at 25 dB); instead of --prune-waves"})
+    prune_psnr: float = field(default=0.0, metadata={
+        "help": "adaptive waves by their measured worth: at each pruning remove the faintest waves (by visible "
+                "contribution) as long as the training views' PSNR drops by at most this many dB, measured by "
+                "rendering a few of them with and without, e.g. 0.02; instead of --prune-waves or --prune-relative"})
     init: str = field(default="paper", metadata={
         "help": "the start of --color-param paper: paper (the public release's: cA = point colour, cB = 0, weights "
                 "0.1 U(0,1), a dark start) or surfel (the 2DGS surfel it would be: weights 1/N, cA and cB the point "
@@ -94,9 +103,11 @@ class GaborConfig:
             raise ShapeError(f"wave_l1 must be a finite number >= 0 (0: off), got {self.wave_l1}")
         if not float(self.prune_relative) >= 0:
             raise ShapeError(f"prune_relative must be >= 0 (0: off), got {self.prune_relative}")
-        if float(self.prune_waves) > 0 and float(self.prune_relative) > 0:
-            raise ShapeError("give one pruning threshold: prune_waves (fixed, colour units) or prune_relative "
-                             "(a fraction of the training error), not both")
+        if not 0 <= float(self.prune_psnr) < math.inf:
+            raise ShapeError(f"prune_psnr must be a finite number of dB >= 0 (0: off), got {self.prune_psnr}")
+        if sum(float(v) > 0 for v in (self.prune_waves, self.prune_relative, self.prune_psnr)) > 1:
+            raise ShapeError("give one pruning criterion: prune_waves (fixed, colour units), prune_relative (a "
+                             "fraction of the training error) or prune_psnr (a measured PSNR cost), not two")
         if self.color_param not in ("residual", "paper"):
             raise ShapeError(f"color_param must be residual or paper, got {self.color_param!r}")
         if self.init not in ("surfel", "paper"):
@@ -151,7 +162,8 @@ class GaborModel(SurfelModel):
 
     @property
     def adaptive(self) -> bool:
-        return float(self.config.prune_waves) > 0 or float(self.config.prune_relative) > 0
+        c = self.config
+        return float(c.prune_waves) > 0 or float(c.prune_relative) > 0 or float(c.prune_psnr) > 0
 
     @property
     def residual(self) -> bool:
@@ -269,8 +281,15 @@ class GaborModel(SurfelModel):
         if cfg.densify:
             first = max(first, cfg.at(cfg.densify_until) + cfg.at(cfg.opacity_reset_interval) // 2)
         every = max(cfg.at(cfg.densify_interval), 10)
+        measured = float(self.config.prune_psnr) > 0
+        if measured:  # each pruning renders the probe views several times: fewer, larger prunings
+            every = max(every, math.ceil((cfg.iterations - first) / MEASURED_PRUNINGS))
         if step < first or (step % every and step != cfg.iterations):
             return None
+        if measured:
+            if self.probe_error is None:
+                return None
+            return self.prune_waves(self.measured_threshold(float(self.config.prune_psnr)), optimizer)
         ramp = PRUNE_RAMP * (cfg.iterations - first)
         fraction = 1.0 if ramp <= 0 else min(1.0, (step - first) / ramp)
         return self.prune_waves(fraction * self.prune_threshold(), optimizer)
@@ -281,6 +300,44 @@ class GaborModel(SurfelModel):
         if float(self.config.prune_relative) > 0:
             return float(self.config.prune_relative) * (self.recent_error or 0.0)
         return float(self.config.prune_waves)
+
+    @torch.no_grad()
+    def measured_threshold(self, tolerance_db: float) -> float:
+        """The contribution threshold (wave_statistics) that removes the most waves, faintest first, while the
+        trainer's probe views lose at most tolerance_db of PSNR: a bisection over the number removed, each trial
+        rendered with those waves removed as prune_waves would remove them (their mean colour kept)."""
+        mean, contribution = self.wave_statistics()
+        on = self.active_slots()
+        levels = contribution[on].sort().values
+        n = levels.numel()
+        if n == 0:
+            return 0.0
+        allowed = self.probe_error(self.surfels) * 10 ** (tolerance_db / 10)
+
+        def threshold(j):  # removes the j faintest (fewer where contributions tie)
+            return math.inf if j >= n else float(levels[j])
+
+        def affordable(j):
+            removed = on & (contribution < threshold(j))
+            return self.probe_error(lambda camera: self._surfels_without(camera, removed, mean)) <= allowed
+
+        lo, hi = 0, n  # removing lo waves is affordable; more than hi is not known to be
+        for _ in range(BISECTION_STEPS):
+            if lo >= hi:
+                break
+            mid = (lo + hi + 1) // 2
+            if affordable(mid):
+                lo = mid
+            else:
+                hi = mid - 1
+        return threshold(lo) if lo > 0 else 0.0
+
+    def _surfels_without(self, camera: Camera, removed: torch.Tensor, mean: torch.Tensor) -> Surfels:
+        """surfels(camera) with the `removed` wave slots ([N,width] bool) gone and their mean colour ([N,width,3],
+        wave_statistics) in the base colour: what prune_waves would leave, in either colour form."""
+        s = self.surfels(camera)
+        return dataclasses.replace(s, base_color=s.base_color + (mean * removed[..., None]).sum(1),
+                                   wave_amplitudes=s.wave_amplitudes * (~removed)[..., None])
 
     def _mean_cos(self) -> torch.Tensor:
         """[N,width]: cos(k.(u,v) + phi) averaged over u,v ~ N(0, I), = cos(phi) e^{-|k|^2/2}."""
@@ -307,8 +364,8 @@ class GaborModel(SurfelModel):
         orientation order) and trim the stored width to the largest count. A surfel left without waves becomes a 2DGS
         surfel (colour in color_base, or color_a for "paper"). Returns counts."""
         if not self.adaptive:
-            raise ShapeError("prune_waves needs a model created with prune_waves or prune_relative > 0 (it tracks "
-                             "per-surfel counts)")
+            raise ShapeError("prune_waves needs a model created with prune_waves, prune_relative or prune_psnr > 0 "
+                             "(it tracks per-surfel counts)")
         w = self.wave_weights.detach()
         n, width = w.shape
         on = self.active_slots()

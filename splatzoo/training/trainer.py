@@ -29,6 +29,7 @@ STRATEGIES = ("adc", "mcmc")   # densification strategies (TrainConfig.strategy)
 ERROR_AVERAGE = 0.01          # the model's recent_error: an exponential average over about 1/this many steps
 DOWNSCALES = (0.5, 0.25)      # the smaller scales --random-downscale trains at ...
 MIN_DOWNSCALED_SIDE = 64      # ... where the view's shorter side stays at least this many pixels
+PROBE_VIEWS = 4               # the model's probe_error renders this many training views, evenly spaced
 
 
 def densify_budget(scene, initial: int) -> int:
@@ -199,6 +200,7 @@ class Trainer:
         self.reset_every = max(cfg.at(cfg.opacity_reset_interval), cfg.opacity_reset_interval // 3)
         # from the scene and the config alone, so that a resumed run has the same budget
         self.budget = cfg.max_primitives or densify_budget(scene, cfg.num_primitives or scene.points.shape[0])
+        self.net.probe_error = self._probe_error
 
     @classmethod
     def start(cls, scene, model: str, model_config, cfg: TrainConfig, backend: str, device,
@@ -306,6 +308,21 @@ class Trainer:
         for p, grad in zip(params, grads):
             p.grad = grad / n if n > 1 else grad
         return torch.stack(losses).mean(), torch.stack(photos).mean(), render, target, float(error) / n
+
+    @torch.no_grad()
+    def _probe_error(self, surfels_of) -> float:
+        """The mean squared colour error over PROBE_VIEWS fixed training views (full size, the run's background),
+        each rendered from surfels_of(camera): the same views every call, so two calls compare two models."""
+        train = self.scene.train
+        views = train[:: max(1, len(train) // PROBE_VIEWS)][:PROBE_VIEWS]
+        total = 0.0
+        for view in views:
+            cam = view.camera.to(self.device, torch.float32)
+            target = view.image_float(background=self.background.cpu()).to(self.device)
+            rgb = rasterize(surfels_of(cam), cam, backend=self.backend, background=self.background,
+                            settings=self.net.raster_settings).rgb
+            total += float(((rgb - target) ** 2).mean())
+        return total / len(views)
 
     def _mcmc_step(self, step: int) -> None:
         """--strategy mcmc: every densification interval, dead surfels move onto live ones and the count grows by
