@@ -26,7 +26,7 @@ def test_every_command_has_help(command):
 def test_models_lists_builtins():
     result = runner.invoke(app, ["models"])
     assert result.exit_code == 0
-    for name in ("2dgs", "gabor", "baseline-a", "baseline-b", "baseline-c"):
+    for name in ("2dgs", "gabor", "gabor-adaptive", "baseline-a", "baseline-b", "baseline-c"):
         assert name in result.output
     assert "built-in" in result.output
 
