@@ -4,7 +4,7 @@ the byte budget with its trained size; every other model gets as many primitives
     python benchmarks/bench_equal_bytes.py [--scenes sweater,vest,shirt,boots] [--size 256] [--counts 250,500,2000]
         [--models 2dgs,gabor]
 
-With an adaptive gabor first (`--models gabor:prune_relative=2,2dgs`) the budget is what that model kept after
+With an adaptive gabor first (`--models gabor-adaptive,2dgs`) the budget is what that model kept after
 pruning its waves. The `--quick` protocol otherwise: 24 views, fixed count, 1500 iterations, seed 0. Each row shows
 the image pixels per primitive of the first model (one view): the paper's scenes have about 460 (4.2k-4.5k
 primitives on 1920x1080 photographs), the `--quick` protocol 8 at 128 px and 33 at 256 px.
