@@ -132,10 +132,7 @@ class SplatModel(nn.Module):
         re-parametrisation: the old moments describe another quantity)."""
         p = getattr(self, name)
         p[rows] = value
-        state = optimizer.state.get(p) if optimizer is not None else None
-        for key in ("exp_avg", "exp_avg_sq"):
-            if state and key in state and state[key].shape == p.shape:
-                state[key][rows] = 0
+        restart_moments(optimizer, p, rows)
 
     def size_bytes(self) -> int:
         """Bytes of stored parameters (float32)."""
@@ -225,6 +222,14 @@ class SurfelModel(SplatModel):
             {"name": "quats", "params": [self.quats], "lr": 1e-3},
             {"name": "logit_opacity", "params": [self.logit_opacity], "lr": 0.05},
         ]
+
+
+def restart_moments(optimizer: torch.optim.Optimizer | None, p: torch.Tensor, rows: torch.Tensor) -> None:
+    """Zero Adam's moments of parameter `p` at `rows` (edited rows: the old moments describe another quantity)."""
+    state = optimizer.state.get(p) if optimizer is not None else None
+    for key in ("exp_avg", "exp_avg_sq"):
+        if state and key in state and state[key].shape == p.shape:
+            state[key][rows] = 0
 
 
 def view_directions(means: torch.Tensor, camera: Camera) -> torch.Tensor:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 
 from ..geometry import quat_to_rotmat
-from ..models.base import SurfelModel, inverse_sigmoid
+from ..models.base import SurfelModel, inverse_sigmoid, restart_moments
 
 DEAD_OPACITY = 0.005      # under this a surfel is dead and gets relocated
 GROWTH = 0.05             # each refinement step adds at most this fraction of the count (until the budget)
@@ -43,10 +43,7 @@ def relocated(opacity: torch.Tensor, scale: torch.Tensor, copies: torch.Tensor) 
 
 def _reset_moments(optimizer, params: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
     for p in params.values():
-        state = optimizer.state.get(p) if optimizer is not None else None
-        for key in ("exp_avg", "exp_avg_sq"):
-            if state and key in state and state[key].shape[:1] == p.shape[:1]:
-                state[key][rows] = 0
+        restart_moments(optimizer, p, rows)
 
 
 def _sample_sources(opacity: torch.Tensor, candidates: torch.Tensor, count: int, generator) -> torch.Tensor:
