@@ -153,11 +153,14 @@ def test_files_from_before_color_param_mean_the_paper_model():
     default: a gabor checkpoint, PLY header or run record without color_param is the paper's parametrisation."""
     from splatzoo.zoo import model_from_checkpoint, stored_config
 
-    assert stored_config("gabor", {"n_waves": 4}) == {"color_param": "paper", "wave_l1": 0.0, "n_waves": 4}
+    assert stored_config("gabor", {"n_waves": 4}) == {"color_param": "paper", "wave_l1": 0.0,
+                                                      "wave_l1_per_count": False, "n_waves": 4}
     assert stored_config("gabor", {"color_param": "residual"})["color_param"] == "residual"
     # a residual model from before the sparse-wave default trained (and resumes) without the penalty
     assert stored_config("gabor", {"color_param": "residual"})["wave_l1"] == 0.0
     assert stored_config("gabor", {"color_param": "residual", "wave_l1": 3e-6})["wave_l1"] == 3e-6
+    # and one from before wave_l1_per_count had the same strength at any count
+    assert stored_config("gabor", {"color_param": "residual", "wave_l1": 3e-6})["wave_l1_per_count"] is False
     assert stored_config("2dgs", {"sh_degree": 1}) == {"sh_degree": 1}
     assert stored_config("no-such-model", {"x": 1}) == {"x": 1}  # the caller reports the unknown name
     pts, cols = point_cloud(7)

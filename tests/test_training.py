@@ -216,6 +216,26 @@ def test_random_downscale_trains_some_views_smaller(tiny_data, monkeypatch):
         small_config(random_downscale=1.5).validate()
 
 
+def test_wave_l1_per_count_keeps_the_pull_per_pixel():
+    """The default scaling: WAVE_L1_COUNT / the surfel count. At WAVE_L1_COUNT surfels it is the plain penalty;
+    twice as many surfels, each covering about half the pixels, get half the pull per wave; off, any count gets
+    wave_l1 per wave."""
+    from splatzoo import create_model
+    from splatzoo.models.gabor import WAVE_L1, WAVE_L1_COUNT
+
+    grads = {}
+    for n in (WAVE_L1_COUNT, 2 * WAVE_L1_COUNT, 4):
+        for per_count in (True, False):
+            m = create_model("gabor", torch.rand(n, 3), torch.rand(n, 3), wave_l1_per_count=per_count)
+            m.regulariser().backward()
+            grads[n, per_count] = m.wave_weights.grad.abs()
+    assert torch.allclose(grads[WAVE_L1_COUNT, True], torch.full_like(grads[WAVE_L1_COUNT, True], WAVE_L1))
+    assert torch.allclose(grads[2 * WAVE_L1_COUNT, True], torch.full_like(grads[2 * WAVE_L1_COUNT, True], WAVE_L1 / 2))
+    assert torch.allclose(grads[4, True], torch.full_like(grads[4, True], WAVE_L1 * WAVE_L1_COUNT / 4))
+    for n in (WAVE_L1_COUNT, 2 * WAVE_L1_COUNT, 4):
+        assert torch.allclose(grads[n, False], torch.full_like(grads[n, False], WAVE_L1))
+
+
 def test_wave_l1_pulls_unneeded_waves_to_zero(tiny_data):
     """gabor:wave_l1: the model's penalty is wave_l1 x sum |w| (by default WAVE_L1; None when off, for the paper's
     colours and for models without waves), the trainer adds it, and a run with it ends with smaller wave weights
@@ -227,14 +247,14 @@ def test_wave_l1_pulls_unneeded_waves_to_zero(tiny_data):
     from splatzoo.zoo import make_config
 
     pts, cols = torch.rand(50, 3), torch.rand(50, 3)
-    default = create_model("gabor", pts, cols)
-    assert torch.allclose(default.regulariser(), WAVE_L1 * default.wave_weights.abs().sum())
+    uniform = create_model("gabor", pts, cols, wave_l1_per_count=False)
+    assert torch.allclose(uniform.regulariser(), WAVE_L1 * uniform.wave_weights.abs().sum())
     assert create_model("gabor", pts, cols, wave_l1=0).regulariser() is None
     assert create_model("gabor", pts, cols, color_param="paper").regulariser() is None
     with pytest.raises(SplatzooError, match="residual only"):
         make_config("gabor", color_param="paper", wave_l1=1e-3)
     assert create_model("2dgs", pts, cols).regulariser() is None
-    net = create_model("gabor", pts, cols, wave_l1=1e-3)
+    net = create_model("gabor", pts, cols, wave_l1=1e-3, wave_l1_per_count=False)
     penalty = net.regulariser()
     assert torch.allclose(penalty, 1e-3 * net.wave_weights.abs().sum())
     penalty.backward()

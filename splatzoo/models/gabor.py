@@ -49,6 +49,7 @@ BASE_COLOR_LR = 2.5e-3 * SH_C0
 # the default sparse-wave penalty: the smallest of those measured that keeps plain colour as 2DGS renders it (LPIPS
 # within 0.002 over white, three seeds) and costs fine texture least (BENCHMARKS.md, "Sparse waves by default")
 WAVE_L1 = 3e-6
+WAVE_L1_COUNT = 2000  # ... chosen with this many surfels (wave_l1_per_count scales it by this / the surfel count)
 PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
 MEASURED_PRUNINGS = 8  # prune_psnr: about this many measured prunings over the pruning period (and one at the end)
 BISECTION_STEPS = 7    # prune_psnr: the share of waves removed is found to 1/2^this of the active waves
@@ -80,16 +81,21 @@ class GaborConfig:
                 "colour +- a small offset); see BENCHMARKS.md"})
     wave_l1: float = field(default=WAVE_L1, metadata={
         "help": "L1 penalty on the residual waves' weights (wave_l1 x their sum over surfels and waves, added to the "
-                "loss): waves the images do not ask for decay to zero, so plain colour looks as 2DGS's does (LPIPS) "
+                "loss; for 2000 surfels, see --wave-l1-per-count): waves the images do not ask for decay to zero, so plain colour looks as 2DGS's does (LPIPS) "
                 "while fine texture keeps its waves; see BENCHMARKS.md. 0: off. color_param=residual only (in the "
                 "paper's form the weights carry the base colour too)"})
+    wave_l1_per_count: bool = field(default=True, metadata={
+        "help": "scale --wave-l1 by 2000 / the surfel count (2000: the count it was chosen at), so that the pull "
+                "against the images' gradient, which shrinks with the pixels each surfel covers, does not grow as "
+                "densification multiplies the surfels; off: the same strength at any count"})
     prune_from: float = field(default=0.5, metadata={
         "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow; "
                 "with densification on, pruning also waits until the last opacity reset has recovered)"})
 
-    # what a stored config written before an option existed meant: files from before `color_param` are "paper" models
-    # and files from before the sparse-wave default trained without the penalty
-    stored_defaults: ClassVar[dict] = {"color_param": "paper", "wave_l1": 0.0}
+    # what a stored config written before an option existed meant: files from before `color_param` are "paper" models,
+    # files from before the sparse-wave default trained without the penalty, and those from before
+    # wave_l1_per_count with the same strength at any count
+    stored_defaults: ClassVar[dict] = {"color_param": "paper", "wave_l1": 0.0, "wave_l1_per_count": False}
 
     def __post_init__(self):
         if int(self.n_waves) < 1:
@@ -276,10 +282,16 @@ class GaborModel(SurfelModel):
 
     def regulariser(self) -> torch.Tensor | None:
         """wave_l1 x the sum of |wave weight| (removed waves' slots hold zeros): Adam turns its constant pull into
-        steps toward zero wherever the images' gradient does not hold a wave up. None for the paper's colours."""
+        steps toward zero wherever the images' gradient does not hold a wave up. None for the paper's colours.
+        wave_l1_per_count: the strength scaled by WAVE_L1_COUNT / the surfel count. A wave's gradient from the
+        images grows with the pixels its surfel covers, about 1/count of the object's, so the pull against it stays
+        what it was at WAVE_L1_COUNT surfels when densification multiplies them."""
         if float(self.config.wave_l1) <= 0 or not self.residual:
             return None
-        return float(self.config.wave_l1) * self.wave_weights.abs().sum()
+        strength = float(self.config.wave_l1)
+        if self.config.wave_l1_per_count:
+            strength *= WAVE_L1_COUNT / max(self.num_primitives, 1)
+        return strength * self.wave_weights.abs().sum()
 
     # --- adaptive waves ---------------------------------------------------------------------------------------
     def on_step(self, step: int, train_config, optimizer) -> dict | None:
