@@ -57,17 +57,23 @@ def test_training_raises_test_psnr(tiny_data, tmp_path):
     assert cfg["model_config"]["n_waves"] == 4 and cfg["train"]["iterations"] == 150
 
 
-@pytest.mark.parametrize("model", ["gabor", "2dgs"])
-def test_resume_gives_the_same_parameters(tiny_data, tmp_path, model):
+@pytest.mark.parametrize("model, options", [("gabor", {}), ("2dgs", {}),
+                                            # a measured pruning at step 30 (after densification's window), after
+                                            # the stop: the resumed run must measure and decide as the full one
+                                            ("gabor-adaptive", {"prune_from": 0.3})])
+def test_resume_gives_the_same_parameters(tiny_data, tmp_path, model, options):
     scene = load_scene(tiny_data)
     cfg = small_config(iterations=30, backend="reference", num_primitives=120, densify=True,
                        densify_from=0, densify_interval=10000, opacity_reset_interval=20000)
-    full = train(scene, model, {}, cfg, tmp_path / "full", progress=False, evaluate_at_end=False)
-    part = train(scene, model, {}, cfg, tmp_path / "part", progress=False, evaluate_at_end=False, stop_after=17)
+    full = train(scene, model, options, cfg, tmp_path / "full", progress=False, evaluate_at_end=False)
+    part = train(scene, model, options, cfg, tmp_path / "part", progress=False, evaluate_at_end=False,
+                 stop_after=17)
     assert not (tmp_path / "part" / "model.pt").exists()
     resumed = train(scene, model, {}, None, tmp_path / "part", resume=True, progress=False, evaluate_at_end=False)
     a, b = full.model.state_dict(), resumed.model.state_dict()
-    assert a.keys() == b.keys()
+    assert a.keys() == b.keys() and full.model.summary() == resumed.model.summary()
+    if model == "gabor-adaptive":
+        assert 0 < full.model.summary()["wave_fraction"] < 1  # the prunings removed some waves and kept some
     for k in a:
         assert torch.equal(a[k], b[k]), k
     log_a = (tmp_path / "full" / "train_log.jsonl").read_text().splitlines()
