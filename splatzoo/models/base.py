@@ -49,8 +49,8 @@ class SplatModel(nn.Module):
     # on_step; None outside training
     recent_error: float | None = None
     # probe_error(surfels_of): the mean squared colour error over a fixed few training views, each rendered from
-    # surfels_of(camera) (no gradient); set by the trainer before each on_step, so a model can measure what an edit
-    # would cost before making it. None outside training
+    # surfels_of(camera) (no gradient); set by the trainer that trains the model, so on_step can measure what an
+    # edit would cost before making it. None outside training
     probe_error: Any = None
 
     def __init__(self, config: Any, num_primitives: int = 0):

@@ -81,16 +81,17 @@ class GaborConfig:
                 "colour +- a small offset); see BENCHMARKS.md"})
     wave_l1: float = field(default=WAVE_L1, metadata={
         "help": "L1 penalty on the residual waves' weights (wave_l1 x their sum over surfels and waves, added to the "
-                "loss; for 2000 surfels, see --wave-l1-per-count): waves the images do not ask for decay to zero, so plain colour looks as 2DGS's does (LPIPS) "
-                "while fine texture keeps its waves; see BENCHMARKS.md. 0: off. color_param=residual only (in the "
-                "paper's form the weights carry the base colour too)"})
+                "loss; for 2000 surfels, see --wave-l1-per-count): waves the images do not ask for decay to zero, so "
+                "plain colour looks as 2DGS's does (LPIPS) while fine texture keeps its waves; see BENCHMARKS.md. "
+                "0: off. color_param=residual only (in the paper's form the weights carry the base colour too)"})
     wave_l1_per_count: bool = field(default=True, metadata={
         "help": "scale --wave-l1 by 2000 / the surfel count (2000: the count it was chosen at), so that the pull "
                 "against the images' gradient, which shrinks with the pixels each surfel covers, does not grow as "
                 "densification multiplies the surfels; off: the same strength at any count"})
     prune_from: float = field(default=0.5, metadata={
-        "help": "with --prune-waves: fraction of the iterations before the first pruning (waves need time to grow; "
-                "with densification on, pruning also waits until the last opacity reset has recovered)"})
+        "help": "adaptive waves (any --prune-* option): fraction of the iterations before the first pruning "
+                "(waves need time to grow; with densification on, pruning also waits until the last opacity reset "
+                "has recovered)"})
 
     # what a stored config written before an option existed meant: files from before `color_param` are "paper" models,
     # files from before the sparse-wave default trained without the penalty, and those from before

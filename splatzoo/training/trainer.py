@@ -200,6 +200,7 @@ class Trainer:
         self.reset_every = max(cfg.at(cfg.opacity_reset_interval), cfg.opacity_reset_interval // 3)
         # from the scene and the config alone, so that a resumed run has the same budget
         self.budget = cfg.max_primitives or densify_budget(scene, cfg.num_primitives or scene.points.shape[0])
+        self._probe_views = None  # (camera, image) pairs of _probe_error, made on its first call
         self.net.probe_error = self._probe_error
 
     @classmethod
@@ -312,17 +313,19 @@ class Trainer:
     @torch.no_grad()
     def _probe_error(self, surfels_of) -> float:
         """The mean squared colour error over PROBE_VIEWS fixed training views (full size, the run's background),
-        each rendered from surfels_of(camera): the same views every call, so two calls compare two models."""
-        train = self.scene.train
-        views = train[:: max(1, len(train) // PROBE_VIEWS)][:PROBE_VIEWS]
+        each rendered from surfels_of(camera): the same views every call, so two calls compare two models. Their
+        cameras and images are prepared on the first call (a pruning makes several)."""
+        if self._probe_views is None:
+            train = self.scene.train
+            self._probe_views = [(v.camera.to(self.device, torch.float32),
+                                  v.image_float(background=self.background.cpu()).to(self.device))
+                                 for v in train[:: max(1, len(train) // PROBE_VIEWS)][:PROBE_VIEWS]]
         total = 0.0
-        for view in views:
-            cam = view.camera.to(self.device, torch.float32)
-            target = view.image_float(background=self.background.cpu()).to(self.device)
+        for cam, target in self._probe_views:
             rgb = rasterize(surfels_of(cam), cam, backend=self.backend, background=self.background,
                             settings=self.net.raster_settings).rgb
             total += float(((rgb - target) ** 2).mean())
-        return total / len(views)
+        return total / len(self._probe_views)
 
     def _mcmc_step(self, step: int) -> None:
         """--strategy mcmc: every densification interval, dead surfels move onto live ones and the count grows by
