@@ -822,13 +822,23 @@ SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const Pa
     acc(G_CENTER + 1, S(0));
 }
 
-// One contribution, back to front. Contributions must be visited in reverse blending order, each exactly once.
-// e: the pair (alpha > 0 and pos < last); base..wa: this surfel's colour parameters; n its normal; gains: its
-// wave_gains when anti-aliased (or nullptr: computed here from g.blur).
-// Calls acc for the same slots in the same order whatever the pair (see geom_backward).
+// The cotangents one contribution hands to the pair's geometry: of its alpha, its depth and the point (u, v) its
+// colour is taken at.
+template <class S>
+struct PairCotangents {
+    S alpha, z, u, v;
+};
+
+// One contribution, back to front, up to its geometry: updates the pixel state, accumulates the colour, normal and
+// wave slots (and, anti-aliased, the waves' blur) and returns what geom_backward(_filtered) takes from here.
+// Contributions must be visited in reverse blending order, each exactly once. e: the pair (alpha > 0 and
+// pos < last); base..wa: this surfel's colour parameters; n its normal; gains: its wave_gains when anti-aliased
+// (or nullptr: computed here from g.blur). Calls acc for the same slots in the same order whatever the pair.
 template <int KMAX = -1, class S, class Acc>
-SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n, const S* base,
-                          const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc, const S* gains = nullptr) {
+SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p, const Geom<S>& g,
+                                              const PairEval<S>& e, const S* n, const S* base, const S* wv,
+                                              const S* wp, const S* wa, int K, int pos, Acc& acc,
+                                              const S* gains = nullptr) {
     S a = e.alpha;
     S oma = S(1) - a;
     S Ti = p.T / oma;  // transmittance before this contribution
@@ -903,11 +913,21 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
         acc(G_BLUR + 0, v_blur[0]);
         acc(G_BLUR + 1, v_blur[1]);
         acc(G_BLUR + 2, v_blur[2]);
-        geom_backward_filtered(st, g, e, v_alpha, v_z, v_u, v_v, acc);
-    } else {
-        // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
-        geom_backward(st, g, e, v_alpha, v_z, v_u, v_v, acc);
     }
+    return {v_alpha, v_z, v_u, v_v};
+}
+
+// One contribution, back to front, whole: blend_backward_colour, then the pair's geometry. Calls acc for the same
+// slots in the same order whatever the pair (see geom_backward).
+template <int KMAX = -1, class S, class Acc>
+SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n,
+                          const S* base, const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc,
+                          const S* gains = nullptr) {
+    const PairCotangents<S> v = blend_backward_colour<KMAX>(st, p, g, e, n, base, wv, wp, wa, K, pos, acc, gains);
+    if (st.pixel_filter > 0)
+        geom_backward_filtered(st, g, e, v.alpha, v.z, v.u, v.v, acc);
+    else  // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
+        geom_backward(st, g, e, v.alpha, v.z, v.u, v.v, acc);
 }
 
 // A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
