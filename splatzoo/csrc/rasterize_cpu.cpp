@@ -3,8 +3,10 @@
 // Each (surfel, tile) pair is handled in two phases:
 //   1. eval_rows: alpha (and u, v, z) of the surfel at every pixel of the rows its box covers, a pure float loop
 //      that vectorises across pixels (no integer counters or early exits in it);
-//   2. a scalar pass over the pixels with alpha > 0 that blends (forward) or back-propagates (backward); the
-//      anti-aliased backward reads the footprint's per-pixel values from phase 1 (the plain one recomputes its few).
+//   2. a scalar pass over the pixels with alpha > 0 that blends (forward) or back-propagates (backward). The
+//      anti-aliased backward stops each pixel at the cotangents of the pair's alpha, depth and colour point and
+//      takes them through the footprint in a third, vectorised pass (geom_rows_filtered) that reads the footprint's
+//      per-pixel values from phase 1; the plain one does its short geometry pixel by pixel.
 // Forward and backward call the same non-inlined eval_rows, so both see bit-identical alphas and agree on which
 // pairs contributed. Per-surfel gradients are written per (surfel, tile) pair into a scratch row and summed per
 // surfel at the end: no atomics, and the result does not depend on the thread count.
@@ -32,6 +34,9 @@ struct TileScratch {
     alignas(64) S ex[TILE_PIXELS], inv[TILE_PIXELS], xu[TILE_PIXELS], xv[TILE_PIXELS];
     alignas(64) S j00[TILE_PIXELS], j01[TILE_PIXELS], j10[TILE_PIXELS], j11[TILE_PIXELS];
     alignas(64) S p00[TILE_PIXELS], p01[TILE_PIXELS], p11[TILE_PIXELS], idet[TILE_PIXELS];
+    // the anti-aliased backward's cotangents of each pair's alpha, depth and colour point (PairCotangents; 0 where
+    // the pair did not contribute)
+    alignas(64) S v_alpha[TILE_PIXELS], v_z[TILE_PIXELS], v_u[TILE_PIXELS], v_v[TILE_PIXELS];
 };
 
 // Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z per pixel (KEEP: and the footprint values
@@ -85,22 +90,69 @@ void eval_rows(const Settings& st, const Geom<S>& g, const S* xs, S y0, int r0, 
         eval_rows_impl<false, false>(st, g, xs, y0, r0, r1, sc);
 }
 
-// The anti-aliased pair at tile pixel p from the values eval_rows kept (exactly what eval_pair_filtered gives).
+// The slots geom_backward_filtered writes (a prefix of the row; G_BASE..G_NORMAL are colour slots it leaves alone,
+// G_ZC and G_CENTER it sets to 0: the screen filter's, unused when anti-aliased).
+constexpr int GEOM_SLOTS = G_BLUR;
+constexpr bool filtered_geom_slot(int i) { return i < G_ZC || i == G_O || (i >= G_A && i < G_BLUR); }
+
+// Per-lane slot sums of a vectorised loop over one row's columns: lanes[slot][c] (one vector add per slot).
 template <class S>
-PairEval<S> kept_pair(const Geom<S>& g, const TileScratch<S>& sc, int p, S x, S y) {
-    PairEval<S> e;
-    e.dx = radd(x, -g.cx);
-    e.dy = radd(y, -g.cy);
-    e.inv = sc.inv[p];
-    e.u = sc.u[p]; e.v = sc.v[p]; e.z = sc.z[p];
-    e.ex = sc.ex[p];
-    e.raw = rmul(g.o, e.ex);
-    e.alpha = sc.alpha[p];
-    e.use3 = true;
-    e.xu = sc.xu[p]; e.xv = sc.xv[p];
-    e.j00 = sc.j00[p]; e.j01 = sc.j01[p]; e.j10 = sc.j10[p]; e.j11 = sc.j11[p];
-    e.p00 = sc.p00[p]; e.p01 = sc.p01[p]; e.p11 = sc.p11[p]; e.idet = sc.idet[p];
-    return e;
+struct LaneAcc {
+    S (*lanes)[TILE];
+    int c;
+    void operator()(int i, S v) {
+        if (filtered_geom_slot(i)) lanes[i][c] += v;
+    }
+};
+
+// The anti-aliased pairs' geometry over rows r0..r1 of one surfel: geom_backward_filtered at every pixel from the
+// values eval_rows kept and the cotangents the scalar pass left (0 where the pair did not contribute), summed per
+// slot into t[0, GEOM_SLOTS). Each row is one vectorised loop; the lanes are summed once per call.
+template <class S>
+__attribute__((noinline)) void geom_rows_filtered(const Settings& settings, const Geom<S>& g, const S* xs, S y0,
+                                                  int r0, int r1, const TileScratch<S>& sc, S* t) {
+    const Geom<S> gl = g;
+    const Settings st = settings;
+    alignas(64) S lanes[GEOM_SLOTS][TILE];
+    for (int i = 0; i < GEOM_SLOTS; ++i)
+        if (filtered_geom_slot(i))
+            for (int c = 0; c < TILE; ++c) lanes[i][c] = S(0);
+    for (int r = r0; r <= r1; ++r) {
+        const S y = y0 + S(r);
+        const int o = r * TILE;
+#pragma omp simd
+        for (int c = 0; c < TILE; ++c) {
+            const int p = o + c;
+            // pairs with alpha 0 may keep a non-finite Jacobian (the ray grazes the plane): their cotangents are 0
+            const bool on = sc.alpha[p] > S(0);
+            PairEval<S> e;
+            e.dx = radd(xs[c], -gl.cx);
+            e.dy = radd(y, -gl.cy);
+            e.inv = on ? sc.inv[p] : S(0);
+            e.u = sc.u[p];
+            e.v = sc.v[p];
+            e.ex = sc.ex[p];
+            e.raw = rmul(gl.o, e.ex);
+            e.xu = on ? sc.xu[p] : S(0);
+            e.xv = on ? sc.xv[p] : S(0);
+            e.j00 = on ? sc.j00[p] : S(0);
+            e.j01 = on ? sc.j01[p] : S(0);
+            e.j10 = on ? sc.j10[p] : S(0);
+            e.j11 = on ? sc.j11[p] : S(0);
+            e.p00 = sc.p00[p];
+            e.p01 = sc.p01[p];
+            e.p11 = sc.p11[p];
+            e.idet = sc.idet[p];
+            LaneAcc<S> acc{lanes, c};
+            geom_backward_filtered(st, gl, e, sc.v_alpha[p], sc.v_z[p], sc.v_u[p], sc.v_v[p], acc);
+        }
+    }
+    for (int i = 0; i < GEOM_SLOTS; ++i) {
+        S sum = S(0);
+        if (filtered_geom_slot(i))
+            for (int c = 0; c < TILE; ++c) sum += lanes[i][c];
+        t[i] = sum;
+    }
 }
 
 struct TileRect {
@@ -131,6 +183,91 @@ struct RowAcc {
     S* g;
     void operator()(int i, S v) { g[i] += v; }
 };
+
+// Runs pass(acc) with acc summing into a zeroed slot row of width GW that ends up in row. Rows up to LOCAL_GW wide
+// are accumulated on the stack, where the compiler knows they alias nothing.
+template <class S, class Pass>
+SZ_HD void with_row_acc(S* row, int GW, Pass&& pass) {
+    if (GW <= LOCAL_GW) {
+        alignas(64) S local[LOCAL_GW];
+        std::memset(local, 0, sizeof(S) * GW);
+        RowAcc<S> acc{local};
+        pass(acc);
+        std::memcpy(row, local, sizeof(S) * GW);
+    } else {
+        std::memset(row, 0, sizeof(S) * GW);
+        RowAcc<S> acc{row};
+        pass(acc);
+    }
+}
+
+// One (surfel, tile) pair of the backward: the surfel, its clipped box (rows r0..r1, columns c0..c1, tile-relative),
+// its position in the tile's list and what eval_rows left in the scratch.
+template <class S>
+struct PairPass {
+    const Settings& st;
+    const Geom<S>& g;
+    const SurfelColour<S>& sf;
+    const S* gains;  // anti-aliased: the surfel's wave gains
+    int r0, r1, c0, c1, rel;
+    S y0;
+};
+
+// The plain backward of one (surfel, tile) pair, pixel by pixel. (Each path is its own function, and flattened:
+// GCC otherwise keeps the wave loop's body, inlined in two places, out of line.)
+template <class S>
+__attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, TileScratch<S>& sc, PixelBwd<S>* px,
+                                                        S* row, int GW) {
+    with_row_acc(row, GW, [&](RowAcc<S>& acc) {
+        for (int r = q.r0; r <= q.r1; ++r)
+            for (int c = q.c0; c <= q.c1; ++c) {
+                const int p = r * TILE + c;
+                const S a = sc.alpha[p];
+                if (a == S(0) || q.rel >= px[p].last) continue;
+                PairEval<S> e;
+                eval_pair(q.st, q.g, sc.xs[c], q.y0 + S(r), e);
+                // the decision and the values blended come from eval_rows, as in the forward
+                e.alpha = a;
+                e.u = sc.u[p];
+                e.v = sc.v[p];
+                e.z = sc.z[p];
+                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], q.g, e, q.sf.normal, q.sf.base, q.sf.wv,
+                                                                  q.sf.wp, q.sf.wa, q.sf.K, q.rel, acc, q.gains);
+                geom_backward(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc);
+            }
+    });
+}
+
+// The anti-aliased backward of one (surfel, tile) pair: the colour part pixel by pixel, then the geometry of all
+// pixels at once (geom_rows_filtered), whose per-pixel chain through the footprint vectorises.
+template <class S>
+__attribute__((noinline, flatten)) void backward_pixels_filtered(const PairPass<S>& q, TileScratch<S>& sc,
+                                                                 PixelBwd<S>* px, S* row, int GW) {
+    with_row_acc(row, GW, [&](RowAcc<S>& acc) {
+        for (int p = q.r0 * TILE; p < (q.r1 + 1) * TILE; ++p)
+            sc.v_alpha[p] = sc.v_z[p] = sc.v_u[p] = sc.v_v[p] = S(0);
+        for (int r = q.r0; r <= q.r1; ++r)
+            for (int c = q.c0; c <= q.c1; ++c) {
+                const int p = r * TILE + c;
+                const S a = sc.alpha[p];
+                if (a == S(0) || q.rel >= px[p].last) continue;
+                PairEval<S> e;  // blend_backward_colour reads these four
+                e.alpha = a;
+                e.u = sc.u[p];
+                e.v = sc.v[p];
+                e.z = sc.z[p];
+                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], q.g, e, q.sf.normal, q.sf.base, q.sf.wv,
+                                                                  q.sf.wp, q.sf.wa, q.sf.K, q.rel, acc, q.gains);
+                sc.v_alpha[p] = v.alpha;
+                sc.v_z[p] = v.z;
+                sc.v_u[p] = v.u;
+                sc.v_v[p] = v.v;
+            }
+        alignas(64) S t[GEOM_SLOTS];
+        geom_rows_filtered(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
+        for (int j = 0; j < GEOM_SLOTS; ++j) acc(j, t[j]);
+    });
+}
 
 }  // namespace
 
@@ -241,7 +378,6 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
         TileScratch<S> sc;
         std::vector<PixelBwd<S>> px(TILE_PIXELS);
         std::vector<S> gains(std::max(K, 1));  // anti-aliased: the surfel's wave gains
-        alignas(64) S local[LOCAL_GW];
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < nt; ++t) {
             const TileRect tr = tile_rect(t, W, H);
@@ -275,37 +411,11 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                 if (filtered) wave_gains(gm, sf.wv, sf.K, gains.data());
                 const S* g = filtered ? gains.data() : nullptr;
                 const int rel = pos - start;
-                auto pixels = [&](RowAcc<S>& acc) {
-                    for (int r = r0; r <= r1; ++r)
-                        for (int c = c0; c <= c1; ++c) {
-                            const int p = r * TILE + c;
-                            const S a = sc.alpha[p];
-                            if (a == S(0) || rel >= px[p].last) continue;
-                            PairEval<S> e;
-                            if (filtered) {
-                                e = kept_pair(gm, sc, p, sc.xs[c], y0 + S(r));
-                            } else {
-                                eval_pair(s.st, gm, sc.xs[c], y0 + S(r), e);
-                                // the decision and the values blended come from eval_rows, as in the forward
-                                e.alpha = a;
-                                e.u = sc.u[p];
-                                e.v = sc.v[p];
-                                e.z = sc.z[p];
-                            }
-                            blend_backward(s.st, px[p], gm, e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel,
-                                           acc, g);
-                        }
-                };
-                if (GW <= LOCAL_GW) {  // accumulate on the stack: the compiler knows it aliases nothing
-                    std::memset(local, 0, sizeof(S) * GW);
-                    RowAcc<S> acc{local};
-                    pixels(acc);
-                    std::memcpy(row, local, sizeof(S) * GW);
-                } else {
-                    std::memset(row, 0, sizeof(S) * GW);
-                    RowAcc<S> acc{row};
-                    pixels(acc);
-                }
+                const PairPass<S> q{s.st, gm, sf, g, r0, r1, c0, c1, rel, y0};
+                if (filtered)
+                    backward_pixels_filtered(q, sc, px.data(), row, GW);
+                else
+                    backward_pixels(q, sc, px.data(), row, GW);
             }
         }
         // sum each surfel's pair rows (CSR by depth rank), then map the slots to input gradients
