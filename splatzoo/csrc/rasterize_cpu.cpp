@@ -92,8 +92,8 @@ void eval_rows(const Settings& st, const Geom<S>& g, const S* xs, S y0, int r0, 
 
 // The slots geom_backward_filtered writes (a prefix of the row; G_BASE..G_NORMAL are colour slots it leaves alone,
 // G_ZC and G_CENTER it sets to 0: the screen filter's, unused when anti-aliased).
-constexpr int GEOM_SLOTS = G_BLUR;
-constexpr bool filtered_geom_slot(int i) { return i < G_ZC || i == G_O || (i >= G_A && i < G_BLUR); }
+constexpr int GEOM_SLOTS = G_WAVES;
+constexpr bool filtered_geom_slot(int i) { return i < G_ZC || i == G_O || (i >= G_A && i < G_WAVES); }
 
 // Per-lane slot sums of a vectorised loop over one row's columns: lanes[slot][c] (one vector add per slot).
 template <class S>

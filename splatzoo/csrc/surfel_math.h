@@ -61,10 +61,11 @@ enum : int {
     G_NORMAL = 19,  // dL/d surfel normal                  (3)
     G_A = 22,       // dL/dA through the footprint's Jacobian (3; anti-aliased only)
     G_B = 25,       // dL/dB through the footprint's Jacobian (3; anti-aliased only)
-    G_BLUR = 28,    // dL/d the waves' blur b00, b01, b11 (3; anti-aliased only; b01 counted once)
-    G_WAVES = 31,   // per wave: d k_x, d k_y, d phi, d a (3)
+    G_WAVES = 28,   // per wave: d k_x, d k_y, d phi, d a (3), and (anti-aliased) the sum of dL/d gain x gain
 };
-constexpr int G_PER_WAVE = 6;
+// Anti-aliased, a wave's gain exp(-k^T b k / 2) has the same blur b (the surfel's) at every pixel, so its gradients
+// into k and b are the per-pixel sum of dL/d gain x gain times per-surfel factors: finalize_grads applies them.
+constexpr int G_PER_WAVE = 7;
 SZ_HD constexpr int grad_width(int K) { return G_WAVES + G_PER_WAVE * K; }
 
 // Runs body(k) for the waves k < K. KMAX >= 0 promises K <= KMAX: the loop is unrolled with compile-time indices,
@@ -830,7 +831,7 @@ struct PairCotangents {
 };
 
 // One contribution, back to front, up to its geometry: updates the pixel state, accumulates the colour, normal and
-// wave slots (and, anti-aliased, the waves' blur) and returns what geom_backward(_filtered) takes from here.
+// wave slots and returns what geom_backward(_filtered) takes from here.
 // Contributions must be visited in reverse blending order, each exactly once. e: the pair (alpha > 0 and
 // pos < last); base..wa: this surfel's colour parameters; n its normal; gains: its wave_gains when anti-aliased
 // (or nullptr: computed here from g.blur). Calls acc for the same slots in the same order whatever the pair.
@@ -873,7 +874,6 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
     acc(G_BASE + 1, v_col[1]);
     acc(G_BASE + 2, v_col[2]);
     S v_u = S(0), v_v = S(0);
-    S v_blur[3] = {S(0), S(0), S(0)};
     for_each_wave<KMAX>(K, [&](int k) {
         S sn, cs, gk = S(1);  // cs: the wave's factor in the colour, gain times cos
         if (cached) {
@@ -890,30 +890,16 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
         S v_cos = v_col[0] * wa[3 * k] + v_col[1] * wa[3 * k + 1] + v_col[2] * wa[3 * k + 2];
         S v_phase = -sn * gk * v_cos;  // d/d(phase)
         int o = G_WAVES + G_PER_WAVE * k;
-        S v_kx = v_phase * e.u, v_ky = v_phase * e.v;
-        if (filtered) {  // the gain exp(-k^T b k / 2): d/dk = -gain b k, d/db = -gain k k^T / 2
-            const S v_g = cs * v_cos;  // (dL/d gain) times gain
-            const S kx = wv[2 * k], ky = wv[2 * k + 1];
-            v_kx -= v_g * (blur[0] * kx + blur[1] * ky);
-            v_ky -= v_g * (blur[1] * kx + blur[2] * ky);
-            v_blur[0] -= S(0.5) * v_g * kx * kx;
-            v_blur[1] -= v_g * kx * ky;
-            v_blur[2] -= S(0.5) * v_g * ky * ky;
-        }
-        acc(o + 0, v_kx);
-        acc(o + 1, v_ky);
+        acc(o + 0, v_phase * e.u);
+        acc(o + 1, v_phase * e.v);
         acc(o + 2, v_phase);
         acc(o + 3, cs * v_col[0]);
         acc(o + 4, cs * v_col[1]);
         acc(o + 5, cs * v_col[2]);
+        if (filtered) acc(o + 6, cs * v_cos);  // dL/d gain x gain (the same branch for every pair of a launch)
         v_u += v_phase * wv[2 * k];
         v_v += v_phase * wv[2 * k + 1];
     });
-    if (filtered) {
-        acc(G_BLUR + 0, v_blur[0]);
-        acc(G_BLUR + 1, v_blur[1]);
-        acc(G_BLUR + 2, v_blur[2]);
-    }
     return {v_alpha, v_z, v_u, v_v};
 }
 
@@ -935,8 +921,8 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
 // Anti-aliased, the waves' blur goes through centre_footprint, whose cz = C2 + cx A2 + cy B2 also depends on the
 // centre.
 template <class S, class R>
-SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const R* Gs, int K, S* v_T, S* v_center,
-                          S* v_depth, S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp, S* v_wa) {
+SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const S* wv, const R* Gs, int K, S* v_T,
+                          S* v_center, S* v_depth, S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp, S* v_wa) {
     double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
     double cx = double(center[0]), cy = double(center[1]);
     for (int i = 0; i < 3; ++i) {
@@ -948,9 +934,31 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
         v_B[i] = double(Gs[G_CY + i]) + cy * v_C[i] + double(Gs[G_B + i]);
     }
     double v_cx = double(Gs[G_CENTER]), v_cy = double(Gs[G_CENTER + 1]);
-    if (st.pixel_filter > 0) {
+    const bool filtered = st.pixel_filter > 0;
+    for (int k = 0; k < K; ++k) {
+        const R* w = Gs + G_WAVES + G_PER_WAVE * k;
+        v_wv[2 * k] = S(w[0]);
+        v_wv[2 * k + 1] = S(w[1]);
+        v_wp[k] = S(w[2]);
+        v_wa[3 * k] = S(w[3]);
+        v_wa[3 * k + 1] = S(w[4]);
+        v_wa[3 * k + 2] = S(w[5]);
+    }
+    if (filtered) {
         const CentreFootprint fp = centre_footprint(st, T9, center);
-        const double v_blur[3] = {double(Gs[G_BLUR]), double(Gs[G_BLUR + 1]), double(Gs[G_BLUR + 2])};
+        // the gains exp(-k^T b k / 2) with b the blur the pixels used (Geom::blur, rounded to S): d/dk = -gain b k,
+        // d/db = -gain k k^T / 2, times the summed dL/d gain x gain
+        const double b[3] = {double(S(fp.blur[0])), double(S(fp.blur[1])), double(S(fp.blur[2]))};
+        double v_blur[3] = {0.0, 0.0, 0.0};
+        for (int k = 0; k < K; ++k) {
+            const double v_g = double(Gs[G_WAVES + G_PER_WAVE * k + 6]);
+            const double kx = double(wv[2 * k]), ky = double(wv[2 * k + 1]);
+            v_wv[2 * k] = S(double(Gs[G_WAVES + G_PER_WAVE * k]) - v_g * (b[0] * kx + b[1] * ky));
+            v_wv[2 * k + 1] = S(double(Gs[G_WAVES + G_PER_WAVE * k + 1]) - v_g * (b[1] * kx + b[2] * ky));
+            v_blur[0] -= 0.5 * v_g * kx * kx;
+            v_blur[1] -= v_g * kx * ky;
+            v_blur[2] -= 0.5 * v_g * ky * ky;
+        }
         const double v_cz = centre_blur_backward(st, fp, v_blur, v_A, v_B);
         v_C[2] += v_cz;
         v_A[2] += cx * v_cz;
@@ -982,15 +990,6 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
     v_center[1] = S(v_cy);
     v_depth[0] = S(Gs[G_ZC]);
     v_opac[0] = S(Gs[G_O]);
-    for (int k = 0; k < K; ++k) {
-        const R* w = Gs + G_WAVES + G_PER_WAVE * k;
-        v_wv[2 * k] = S(w[0]);
-        v_wv[2 * k + 1] = S(w[1]);
-        v_wp[k] = S(w[2]);
-        v_wa[3 * k] = S(w[3]);
-        v_wa[3 * k + 1] = S(w[4]);
-        v_wa[3 * k + 2] = S(w[5]);
-    }
 }
 
 // Pixel range [x0, x1] x [y0, y1] (inclusive, clamped to the image; empty if x0 > x1 or y0 > y1) of the pixel
