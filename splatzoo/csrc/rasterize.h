@@ -131,9 +131,9 @@ SZ_HD void load_pixel_bwd(PixelBwd<S>& p, const FrameArgs<S>& f, const GradArgs<
 template <class S, class R>
 SZ_HD void finalize_surfel(const SurfelArgs<S>& s, const GradArgs<S>& g, int64_t i, const R* row) {
     const int K = s.K;
-    finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, s.wv + 2 * K * i, row, K, g.v_T + 9 * i, g.v_center + 2 * i,
-                   g.v_depth_c + i, g.v_normal_c + 3 * i, g.v_opac + i, g.v_base + 3 * i, g.v_wv + 2 * K * i,
-                   g.v_wp + K * i, g.v_wa + 3 * K * i);
+    finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, s.wv + 2 * K * i, s.wa + 3 * K * i, row, K, g.v_T + 9 * i,
+                   g.v_center + 2 * i, g.v_depth_c + i, g.v_normal_c + 3 * i, g.v_opac + i, g.v_base + 3 * i,
+                   g.v_wv + 2 * K * i, g.v_wp + K * i, g.v_wa + 3 * K * i);
 }
 
 // ---- CPU (OpenMP) ----

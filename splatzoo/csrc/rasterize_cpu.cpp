@@ -208,7 +208,8 @@ struct PairPass {
     const Settings& st;
     const Geom<S>& g;
     const SurfelColour<S>& sf;
-    const S* gains;  // anti-aliased: the surfel's wave gains
+    const S* wa;     // the amplitudes the pixels see (anti-aliased: times the gains, fold_gains)
+    const S* gains;  // anti-aliased: the wave gains
     int r0, r1, c0, c1, rel;
     S y0;
 };
@@ -231,8 +232,9 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
                 e.u = sc.u[p];
                 e.v = sc.v[p];
                 e.z = sc.z[p];
-                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], q.g, e, q.sf.normal, q.sf.base, q.sf.wv,
-                                                                  q.sf.wp, q.sf.wa, q.sf.K, q.rel, acc, q.gains);
+                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], e, q.sf.normal, q.sf.base, q.sf.wv,
+                                                                  q.sf.wp, q.wa, q.sf.K, q.rel, acc,
+                                                                  static_cast<const S*>(nullptr));
                 geom_backward(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc);
             }
     });
@@ -256,8 +258,10 @@ __attribute__((noinline, flatten)) void backward_pixels_filtered(const PairPass<
                 e.u = sc.u[p];
                 e.v = sc.v[p];
                 e.z = sc.z[p];
-                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], q.g, e, q.sf.normal, q.sf.base, q.sf.wv,
-                                                                  q.sf.wp, q.sf.wa, q.sf.K, q.rel, acc, q.gains);
+                // the gains are folded into q.wa: no blur here, and the amplitude slots get theirs below
+                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], e, q.sf.normal, q.sf.base, q.sf.wv,
+                                                                  q.sf.wp, q.wa, q.sf.K, q.rel, acc,
+                                                                  static_cast<const S*>(nullptr));
                 sc.v_alpha[p] = v.alpha;
                 sc.v_z[p] = v.z;
                 sc.v_u[p] = v.u;
@@ -266,6 +270,8 @@ __attribute__((noinline, flatten)) void backward_pixels_filtered(const PairPass<
         alignas(64) S t[GEOM_SLOTS];
         geom_rows_filtered(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
         for (int j = 0; j < GEOM_SLOTS; ++j) acc(j, t[j]);
+        for (int k = 0; k < q.sf.K; ++k)  // d(gain a)/da = gain
+            for (int j = 3; j < 6; ++j) acc.g[G_WAVES + G_PER_WAVE * k + j] *= q.gains[k];
     });
 }
 
@@ -322,7 +328,8 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
     {
         TileScratch<S> sc;
         std::vector<PixelFwd<S>> px(TILE_PIXELS);
-        std::vector<S> gains(std::max(s.K, 1));  // anti-aliased: the surfel's wave gains
+        // anti-aliased: the surfel's wave gains and its amplitudes times them
+        std::vector<S> gains(std::max(s.K, 1)), folded(3 * std::max(s.K, 1));
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < nt; ++t) {
             const TileRect tr = tile_rect(t, W, H);
@@ -341,8 +348,8 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                 if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
                 eval_rows(s.st, geom[i], sc.xs, y0, r0, r1, sc, false);
                 const SurfelColour<S> sf = surfel_colour(s, i);
-                if (filtered) wave_gains(geom[i], sf.wv, sf.K, gains.data());
-                const S* g = filtered ? gains.data() : nullptr;
+                if (filtered) fold_gains(geom[i], sf.wv, sf.wa, sf.K, gains.data(), folded.data());
+                const S* wa = filtered ? folded.data() : sf.wa;
                 const int rel = pos - start;
                 for (int r = r0; r <= r1; ++r)
                     for (int c = c0; c <= c1; ++c) {
@@ -350,11 +357,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                         const S a = sc.alpha[p];
                         if (a == S(0) || px[p].done) continue;
                         S col[3], pre[3];
-                        if (filtered)  // two calls: each inlined copy keeps its wave loop free of the other's test
-                            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre,
-                                       static_cast<const S*>(nullptr), g);
-                        else
-                            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, sc.u[p], sc.v[p], col, pre);
+                        wave_color(sf.base, sf.wv, sf.wp, wa, sf.K, sc.u[p], sc.v[p], col, pre);
                         blend_forward(s.st, px[p], a, sc.z[p], col, sf.normal, rel);
                         active -= px[p].done;
                     }
@@ -377,7 +380,8 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
     {
         TileScratch<S> sc;
         std::vector<PixelBwd<S>> px(TILE_PIXELS);
-        std::vector<S> gains(std::max(K, 1));  // anti-aliased: the surfel's wave gains
+        // anti-aliased: the surfel's wave gains and its amplitudes times them
+        std::vector<S> gains(std::max(K, 1)), folded(3 * std::max(K, 1));
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < nt; ++t) {
             const TileRect tr = tile_rect(t, W, H);
@@ -408,10 +412,10 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                 const Geom<S>& gm = geom[i];
                 eval_rows(s.st, gm, sc.xs, y0, r0, r1, sc, true);
                 const SurfelColour<S> sf = surfel_colour(s, i);
-                if (filtered) wave_gains(gm, sf.wv, sf.K, gains.data());
-                const S* g = filtered ? gains.data() : nullptr;
+                if (filtered) fold_gains(gm, sf.wv, sf.wa, sf.K, gains.data(), folded.data());
                 const int rel = pos - start;
-                const PairPass<S> q{s.st, gm, sf, g, r0, r1, c0, c1, rel, y0};
+                const S* wa = filtered ? folded.data() : sf.wa;
+                const PairPass<S> q{s.st, gm, sf, wa, gains.data(), r0, r1, c0, c1, rel, y0};
                 if (filtered)
                     backward_pixels_filtered(q, sc, px.data(), row, GW);
                 else

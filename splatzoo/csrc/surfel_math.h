@@ -61,11 +61,12 @@ enum : int {
     G_NORMAL = 19,  // dL/d surfel normal                  (3)
     G_A = 22,       // dL/dA through the footprint's Jacobian (3; anti-aliased only)
     G_B = 25,       // dL/dB through the footprint's Jacobian (3; anti-aliased only)
-    G_WAVES = 28,   // per wave: d k_x, d k_y, d phi, d a (3), and (anti-aliased) the sum of dL/d gain x gain
+    G_WAVES = 28,   // per wave: d k_x, d k_y, d phi (the wave's phase only), d a (3)
 };
 // Anti-aliased, a wave's gain exp(-k^T b k / 2) has the same blur b (the surfel's) at every pixel, so its gradients
-// into k and b are the per-pixel sum of dL/d gain x gain times per-surfel factors: finalize_grads applies them.
-constexpr int G_PER_WAVE = 7;
+// into k and b are per-surfel factors times the sum over pixels of dL/d gain x gain, which is a . (d a):
+// finalize_grads applies them. The pixels only ever see a wave's gain times its amplitude.
+constexpr int G_PER_WAVE = 6;
 SZ_HD constexpr int grad_width(int K) { return G_WAVES + G_PER_WAVE * K; }
 
 // Runs body(k) for the waves k < K. KMAX >= 0 promises K <= KMAX: the loop is unrolled with compile-time indices,
@@ -545,17 +546,27 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
 // surfel's frame around the hit x, S = f J J^T, J = d(u, v)/d(pixel). With P = (I + S)^-1 the surfel's falloff
 // averaged over the footprint is det(I + S)^-1/2 exp(-x^T P x / 2), and its colour the mean under N(P x, I - P): a
 // wave a cos(k.x + phi) becomes a exp(-k^T (I - P) k / 2) cos(k.(P x) + phi). The waves' blur I - P is taken at
-// the projected centre, once per surfel (Geom::blur, wave_gains); the rest per pixel. Same as
+// the projected centre, once per surfel (Geom::blur, fold_gains); the rest per pixel. Same as
 // reference.footprint_filter.
 // Pairs with tr S > 1 / alpha_min^2 are culled (their gain alone is below alpha_min). Branch-free.
+// J = [[A0 - x0 A2, B0 - x0 B2], [A1 - x1 A2, B1 - x1 B2]] / c2 = N / c2^2, and with c = dx A + dy B + C the
+// column x row products cancel: N00 = A0 c2 - A2 c0 = dy (A0 B2 - A2 B0) + (A0 C2 - A2 C0) depends on the row only,
+// N01 = dx (B0 A2 - B2 A0) + (B0 C2 - B2 C0) on the column only (N10, N11 alike), so a pixel loop pays one product
+// for each. P x and x^T P x are taken as adj(I + S) x / det: the division runs beside the products.
 template <class S>
 SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
     const PixelRay<S> ray = pixel_ray(st, g, x, y);
     const S dx = ray.dx, dy = ray.dy, c0 = ray.c0, c1 = ray.c1, c2 = ray.c2, inv = ray.inv;
     const bool hit = ray.hit;
     S xu = rmul(c0, inv), xv = rmul(c1, inv);
-    S j00 = rmul(radd(g.A[0], -rmul(xu, g.A[2])), inv), j01 = rmul(radd(g.B[0], -rmul(xu, g.B[2])), inv);
-    S j10 = rmul(radd(g.A[1], -rmul(xv, g.A[2])), inv), j11 = rmul(radd(g.B[1], -rmul(xv, g.B[2])), inv);
+    const S ab0 = radd(rmul(g.A[0], g.B[2]), -rmul(g.A[2], g.B[0]));  // per surfel: loop invariants
+    const S ab1 = radd(rmul(g.A[1], g.B[2]), -rmul(g.A[2], g.B[1]));
+    const S n00 = radd(rmul(dy, ab0), radd(rmul(g.A[0], g.C[2]), -rmul(g.A[2], g.C[0])));
+    const S n10 = radd(rmul(dy, ab1), radd(rmul(g.A[1], g.C[2]), -rmul(g.A[2], g.C[1])));
+    const S n01 = radd(rmul(dx, -ab0), radd(rmul(g.B[0], g.C[2]), -rmul(g.B[2], g.C[0])));
+    const S n11 = radd(rmul(dx, -ab1), radd(rmul(g.B[1], g.C[2]), -rmul(g.B[2], g.C[1])));
+    const S inv2 = rmul(inv, inv);
+    S j00 = rmul(n00, inv2), j01 = rmul(n01, inv2), j10 = rmul(n10, inv2), j11 = rmul(n11, inv2);
     const S f = S(st.pixel_filter);
     S s00 = rmul(f, radd(rmul(j00, j00), rmul(j01, j01)));
     S s01 = rmul(f, radd(rmul(j00, j10), rmul(j01, j11)));
@@ -567,11 +578,12 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     s00 = keep ? s00 : S(0);
     s01 = keep ? s01 : S(0);
     s11 = keep ? s11 : S(0);
-    S det = radd(rmul(radd(S(1), s00), radd(S(1), s11)), -rmul(s01, s01));
+    const S a00 = radd(S(1), s11), a11 = radd(S(1), s00);  // adj(I + S) = [[a00, -s01], [-s01, a11]]
+    S det = radd(rmul(a11, a00), -rmul(s01, s01));
     S idet = S(1) / det;
-    S p00 = rmul(radd(S(1), s11), idet), p01 = rmul(-s01, idet), p11 = rmul(radd(S(1), s00), idet);
-    S q = radd(radd(rmul(rmul(p00, xu), xu), rmul(rmul(S(2) * p01, xu), xv)), rmul(rmul(p11, xv), xv));
-    S mu = radd(rmul(p00, xu), rmul(p01, xv)), mv = radd(rmul(p01, xu), rmul(p11, xv));
+    const S hu = radd(rmul(a00, xu), -rmul(s01, xv)), hv = radd(rmul(a11, xv), -rmul(s01, xu));  // adj x
+    S q = rmul(radd(rmul(xu, hu), rmul(xv, hv)), idet);
+    S mu = rmul(hu, idet), mv = rmul(hv, idet);
     S z = radd(radd(rmul(g.m3[0], mu), rmul(g.m3[1], mv)), g.m3[2]);
     S gain = sqrt(idet);
     gain = hit ? gain : S(0);
@@ -584,7 +596,7 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     e.alpha = pair_alpha(st, raw, z);
     e.use3 = true;
     e.xu = xu; e.xv = xv; e.j00 = j00; e.j01 = j01; e.j10 = j10; e.j11 = j11;
-    e.p00 = p00; e.p01 = p01; e.p11 = p11; e.idet = idet; e.inv = inv;
+    e.p00 = rmul(a00, idet); e.p01 = rmul(-s01, idet); e.p11 = rmul(a11, idet); e.idet = idet; e.inv = inv;
 }
 
 // Either evaluation, by the settings (a branch every thread of a launch takes the same way).
@@ -602,24 +614,28 @@ SZ_HD S wave_gain(const S* blur, S kx, S ky) {
     return sz_exp(S(-0.5) * (blur[0] * kx * kx + S(2) * blur[1] * kx * ky + blur[2] * ky * ky));
 }
 
-// Every wave's footprint gain for one anti-aliased surfel (its blur is the same at all its pixels): gains[k].
+// Every wave's footprint gain for one anti-aliased surfel (its blur is the same at all its pixels): gains[k], and
+// the amplitudes times them, folded[3k + i] = gains[k] wa[3k + i], which a pixel loop uses in place of the gains.
 template <class S>
-SZ_HD void wave_gains(const Geom<S>& g, const S* wv, int K, S* gains) {
-    for (int k = 0; k < K; ++k) gains[k] = wave_gain(g.blur, wv[2 * k], wv[2 * k + 1]);
+SZ_HD void fold_gains(const Geom<S>& g, const S* wv, const S* wa, int K, S* gains, S* folded) {
+    for (int k = 0; k < K; ++k) {
+        gains[k] = wave_gain(g.blur, wv[2 * k], wv[2 * k + 1]);
+        for (int i = 0; i < 3; ++i) folded[3 * k + i] = gains[k] * wa[3 * k + i];
+    }
 }
 
-// c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp. g_k = 1,
-// or, anti-aliased, gains[k] (wave_gains, once per surfel) or else wave_gain(blur, k_k) (blur: Geom::blur).
+// c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp. g_k = 1
+// (also when a caller has folded the gains into the amplitudes: fold_gains), or, anti-aliased, wave_gain(blur, k_k)
+// (blur: Geom::blur).
 template <int KMAX = -1, class S>
 SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int K, S u, S v, S col[3], S pre[3],
-                      const S* blur = nullptr, const S* gains = nullptr, S* sn_out = nullptr, S* cs_out = nullptr,
-                      S* gain_out = nullptr) {
+                      const S* blur = nullptr, S* sn_out = nullptr, S* cs_out = nullptr, S* gain_out = nullptr) {
     S r = base[0], gg = base[1], b = base[2];
     for_each_wave<KMAX>(K, [&](int k) {
         S sn, cs;
         sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
-        if (gains || blur) {
-            const S gk = gains ? gains[k] : wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
+        if (blur) {
+            const S gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
             if (gain_out) gain_out[k] = gk;
             cs *= gk;  // sn is only kept for the backward, which multiplies by the gain itself
         }
@@ -833,25 +849,25 @@ struct PairCotangents {
 // One contribution, back to front, up to its geometry: updates the pixel state, accumulates the colour, normal and
 // wave slots and returns what geom_backward(_filtered) takes from here.
 // Contributions must be visited in reverse blending order, each exactly once. e: the pair (alpha > 0 and
-// pos < last); base..wa: this surfel's colour parameters; n its normal; gains: its wave_gains when anti-aliased
-// (or nullptr: computed here from g.blur). Calls acc for the same slots in the same order whatever the pair.
+// pos < last); base..wa: this surfel's colour parameters; n its normal; blur: Geom::blur when anti-aliased, else
+// nullptr. Calls acc for the same slots in the same order whatever the pair. A caller that folds the gains into
+// the amplitudes (fold_gains) passes the folded ones and no blur, and multiplies each wave's amplitude slots by its
+// gain afterwards: every other slot comes out the same.
 template <int KMAX = -1, class S, class Acc>
-SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p, const Geom<S>& g,
-                                              const PairEval<S>& e, const S* n, const S* base, const S* wv,
-                                              const S* wp, const S* wa, int K, int pos, Acc& acc,
-                                              const S* gains = nullptr) {
+SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p, const PairEval<S>& e, const S* n,
+                                              const S* base, const S* wv, const S* wp, const S* wa, int K, int pos,
+                                              Acc& acc, const S* blur) {
     S a = e.alpha;
     S oma = S(1) - a;
     S Ti = p.T / oma;  // transmittance before this contribution
     S w = a * Ti;
     S col[3], pre[3];
-    const bool filtered = st.pixel_filter > 0;
-    const S* blur = filtered ? g.blur : nullptr;
+    const bool filtered = blur != nullptr;
     // sin/cos (cos times the footprint gain) of each wave, computed once for the colour and reused for the derivatives
     constexpr int CACHE = KMAX >= 0 ? (KMAX > 0 ? KMAX : 1) : SINCOS_CACHE;
     S sn_cache[CACHE], cs_cache[CACHE], gain_cache[CACHE];
     const bool cached = KMAX >= 0 || K <= SINCOS_CACHE;
-    wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, blur, gains, cached ? sn_cache : nullptr,
+    wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, blur, cached ? sn_cache : nullptr,
                      cached ? cs_cache : nullptr, cached ? gain_cache : nullptr);
     S m = ndc_depth(st, e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
@@ -883,7 +899,7 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
         } else {
             sz_sincos(e.u * wv[2 * k] + e.v * wv[2 * k + 1] + wp[k], sn, cs);
             if (filtered) {
-                gk = gains ? gains[k] : wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
+                gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
                 cs *= gk;
             }
         }
@@ -896,7 +912,6 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
         acc(o + 3, cs * v_col[0]);
         acc(o + 4, cs * v_col[1]);
         acc(o + 5, cs * v_col[2]);
-        if (filtered) acc(o + 6, cs * v_cos);  // dL/d gain x gain (the same branch for every pair of a launch)
         v_u += v_phase * wv[2 * k];
         v_v += v_phase * wv[2 * k + 1];
     });
@@ -907,10 +922,11 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
 // slots in the same order whatever the pair (see geom_backward).
 template <int KMAX = -1, class S, class Acc>
 SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n,
-                          const S* base, const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc,
-                          const S* gains = nullptr) {
-    const PairCotangents<S> v = blend_backward_colour<KMAX>(st, p, g, e, n, base, wv, wp, wa, K, pos, acc, gains);
-    if (st.pixel_filter > 0)
+                          const S* base, const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc) {
+    const bool filtered = st.pixel_filter > 0;
+    const PairCotangents<S> v =
+        blend_backward_colour<KMAX>(st, p, e, n, base, wv, wp, wa, K, pos, acc, filtered ? g.blur : nullptr);
+    if (filtered)
         geom_backward_filtered(st, g, e, v.alpha, v.z, v.u, v.v, acc);
     else  // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
         geom_backward(st, g, e, v.alpha, v.z, v.u, v.v, acc);
@@ -921,8 +937,9 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
 // Anti-aliased, the waves' blur goes through centre_footprint, whose cz = C2 + cx A2 + cy B2 also depends on the
 // centre.
 template <class S, class R>
-SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const S* wv, const R* Gs, int K, S* v_T,
-                          S* v_center, S* v_depth, S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp, S* v_wa) {
+SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const S* wv, const S* wa, const R* Gs,
+                          int K, S* v_T, S* v_center, S* v_depth, S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp,
+                          S* v_wa) {
     double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
     double cx = double(center[0]), cy = double(center[1]);
     for (int i = 0; i < 3; ++i) {
@@ -947,11 +964,13 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
     if (filtered) {
         const CentreFootprint fp = centre_footprint(st, T9, center);
         // the gains exp(-k^T b k / 2) with b the blur the pixels used (Geom::blur, rounded to S): d/dk = -gain b k,
-        // d/db = -gain k k^T / 2, times the summed dL/d gain x gain
+        // d/db = -gain k k^T / 2, times the summed dL/d gain x gain = a . (dL/da)
         const double b[3] = {double(S(fp.blur[0])), double(S(fp.blur[1])), double(S(fp.blur[2]))};
         double v_blur[3] = {0.0, 0.0, 0.0};
         for (int k = 0; k < K; ++k) {
-            const double v_g = double(Gs[G_WAVES + G_PER_WAVE * k + 6]);
+            const R* w = Gs + G_WAVES + G_PER_WAVE * k;
+            const double v_g = double(wa[3 * k]) * double(w[3]) + double(wa[3 * k + 1]) * double(w[4]) +
+                               double(wa[3 * k + 2]) * double(w[5]);
             const double kx = double(wv[2 * k]), ky = double(wv[2 * k + 1]);
             v_wv[2 * k] = S(double(Gs[G_WAVES + G_PER_WAVE * k]) - v_g * (b[0] * kx + b[1] * ky));
             v_wv[2 * k + 1] = S(double(Gs[G_WAVES + G_PER_WAVE * k + 1]) - v_g * (b[1] * kx + b[2] * ky));
