@@ -123,15 +123,16 @@ __attribute__((noinline)) void geom_rows_filtered(const Settings& settings, cons
 #pragma omp simd
         for (int c = 0; c < TILE; ++c) {
             const int p = o + c;
-            // pairs with alpha 0 may keep a non-finite Jacobian (the ray grazes the plane): their cotangents are 0
+            // a pair with alpha 0 may keep non-finite values (a ray that grazes the plane, a broken surfel): its
+            // cotangents are 0, and so must everything they multiply be
             const bool on = sc.alpha[p] > S(0);
             PairEval<S> e;
-            e.dx = radd(xs[c], -gl.cx);
-            e.dy = radd(y, -gl.cy);
+            e.dx = on ? radd(xs[c], -gl.cx) : S(0);
+            e.dy = on ? radd(y, -gl.cy) : S(0);
             e.inv = on ? sc.inv[p] : S(0);
-            e.u = sc.u[p];
-            e.v = sc.v[p];
-            e.ex = sc.ex[p];
+            e.u = on ? sc.u[p] : S(0);
+            e.v = on ? sc.v[p] : S(0);
+            e.ex = on ? sc.ex[p] : S(0);
             e.raw = rmul(gl.o, e.ex);
             e.xu = on ? sc.xu[p] : S(0);
             e.xv = on ? sc.xv[p] : S(0);
@@ -139,7 +140,7 @@ __attribute__((noinline)) void geom_rows_filtered(const Settings& settings, cons
             e.j01 = on ? sc.j01[p] : S(0);
             e.j10 = on ? sc.j10[p] : S(0);
             e.j11 = on ? sc.j11[p] : S(0);
-            e.p00 = sc.p00[p];
+            e.p00 = sc.p00[p];  // P and 1 / det are finite at every pixel (S is zeroed where the pair is culled)
             e.p01 = sc.p01[p];
             e.p11 = sc.p11[p];
             e.idet = sc.idet[p];
