@@ -81,7 +81,8 @@ def test_sfm_in_place_adds_a_model_next_to_the_images(tmp_path):
     with pytest.raises(DataError, match="notes is empty"):
         run_sfm(data / "notes", data, progress=False)
     messages = []
-    res = run_sfm(data / "images", data, progress=messages.append)
+    # one thread: COLMAP's multi-threaded mapping is not deterministic, and now and then registers 8 of these 10
+    res = run_sfm(data / "images", data, progress=messages.append, num_threads=1)
     assert res.num_registered >= 9 and (data / "sparse" / "0" / "points3D.bin").is_file()
     assert sorted(p.name for p in data.iterdir()) == ["database.db", "images", "notes", "sfm_report.json",
                                                      "sfm_report.png", "sparse"]
