@@ -215,64 +215,49 @@ struct PairPass {
     S y0;
 };
 
-// The plain backward of one (surfel, tile) pair, pixel by pixel. (Each path is its own function, and flattened:
-// GCC otherwise keeps the wave loop's body, inlined in two places, out of line.)
-template <class S>
+// The backward of one (surfel, tile) pair, back to front over the pixels that contributed: the colour part, then
+// the pair's geometry pixel by pixel (plain) or, anti-aliased, for all pixels at once (geom_rows_filtered, whose
+// chain through the footprint vectorises). Each path is its own instantiation, flattened: GCC otherwise keeps the
+// wave loop's body, inlined in two places, out of line.
+template <bool FILTERED, class S>
 __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, TileScratch<S>& sc, PixelBwd<S>* px,
                                                         S* row, int GW) {
     with_row_acc(row, GW, [&](RowAcc<S>& acc) {
+        if constexpr (FILTERED)
+            for (int p = q.r0 * TILE; p < (q.r1 + 1) * TILE; ++p)
+                sc.v_alpha[p] = sc.v_z[p] = sc.v_u[p] = sc.v_v[p] = S(0);
         for (int r = q.r0; r <= q.r1; ++r)
             for (int c = q.c0; c <= q.c1; ++c) {
                 const int p = r * TILE + c;
                 const S a = sc.alpha[p];
                 if (a == S(0) || q.rel >= px[p].last) continue;
                 PairEval<S> e;
-                eval_pair(q.st, q.g, sc.xs[c], q.y0 + S(r), e);
+                if constexpr (!FILTERED) eval_pair(q.st, q.g, sc.xs[c], q.y0 + S(r), e);  // its hit or the filter
                 // the decision and the values blended come from eval_rows, as in the forward
                 e.alpha = a;
                 e.u = sc.u[p];
                 e.v = sc.v[p];
                 e.z = sc.z[p];
+                // anti-aliased, the gains are folded into q.wa: no blur here, and the amplitude slots get them below
                 const PairCotangents<S> v = blend_backward_colour(q.st, px[p], e, q.sf.normal, q.sf.base, q.sf.wv,
                                                                   q.sf.wp, q.wa, q.sf.K, q.rel, acc,
                                                                   static_cast<const S*>(nullptr));
-                geom_backward(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc);
+                if constexpr (FILTERED) {
+                    sc.v_alpha[p] = v.alpha;
+                    sc.v_z[p] = v.z;
+                    sc.v_u[p] = v.u;
+                    sc.v_v[p] = v.v;
+                } else {
+                    geom_backward(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc);
+                }
             }
-    });
-}
-
-// The anti-aliased backward of one (surfel, tile) pair: the colour part pixel by pixel, then the geometry of all
-// pixels at once (geom_rows_filtered), whose per-pixel chain through the footprint vectorises.
-template <class S>
-__attribute__((noinline, flatten)) void backward_pixels_filtered(const PairPass<S>& q, TileScratch<S>& sc,
-                                                                 PixelBwd<S>* px, S* row, int GW) {
-    with_row_acc(row, GW, [&](RowAcc<S>& acc) {
-        for (int p = q.r0 * TILE; p < (q.r1 + 1) * TILE; ++p)
-            sc.v_alpha[p] = sc.v_z[p] = sc.v_u[p] = sc.v_v[p] = S(0);
-        for (int r = q.r0; r <= q.r1; ++r)
-            for (int c = q.c0; c <= q.c1; ++c) {
-                const int p = r * TILE + c;
-                const S a = sc.alpha[p];
-                if (a == S(0) || q.rel >= px[p].last) continue;
-                PairEval<S> e;  // blend_backward_colour reads these four
-                e.alpha = a;
-                e.u = sc.u[p];
-                e.v = sc.v[p];
-                e.z = sc.z[p];
-                // the gains are folded into q.wa: no blur here, and the amplitude slots get theirs below
-                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], e, q.sf.normal, q.sf.base, q.sf.wv,
-                                                                  q.sf.wp, q.wa, q.sf.K, q.rel, acc,
-                                                                  static_cast<const S*>(nullptr));
-                sc.v_alpha[p] = v.alpha;
-                sc.v_z[p] = v.z;
-                sc.v_u[p] = v.u;
-                sc.v_v[p] = v.v;
-            }
-        alignas(64) S t[GEOM_SLOTS];
-        geom_rows_filtered(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
-        for (int j = 0; j < GEOM_SLOTS; ++j) acc(j, t[j]);
-        for (int k = 0; k < q.sf.K; ++k)  // d(gain a)/da = gain
-            for (int j = 3; j < 6; ++j) acc.g[G_WAVES + G_PER_WAVE * k + j] *= q.gains[k];
+        if constexpr (FILTERED) {
+            alignas(64) S t[GEOM_SLOTS];
+            geom_rows_filtered(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
+            for (int j = 0; j < GEOM_SLOTS; ++j) acc(j, t[j]);
+            for (int k = 0; k < q.sf.K; ++k)  // d(gain a)/da = gain
+                for (int j = 3; j < 6; ++j) acc.g[G_WAVES + G_PER_WAVE * k + j] *= q.gains[k];
+        }
     });
 }
 
@@ -418,9 +403,9 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                 const S* wa = filtered ? folded.data() : sf.wa;
                 const PairPass<S> q{s.st, gm, sf, wa, gains.data(), r0, r1, c0, c1, rel, y0};
                 if (filtered)
-                    backward_pixels_filtered(q, sc, px.data(), row, GW);
+                    backward_pixels<true>(q, sc, px.data(), row, GW);
                 else
-                    backward_pixels(q, sc, px.data(), row, GW);
+                    backward_pixels<false>(q, sc, px.data(), row, GW);
             }
         }
         // sum each surfel's pair rows (CSR by depth rank), then map the slots to input gradients
