@@ -152,7 +152,7 @@ __attribute__((noinline)) void geom_rows_filtered(const Settings& settings, cons
         S sum = S(0);
         if (filtered_geom_slot(i))
             for (int c = 0; c < TILE; ++c) sum += lanes[i][c];
-        t[i] = sum;
+        t[i] = sum;  // 0 for the slots it does not write
     }
 }
 
@@ -254,7 +254,8 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
         if constexpr (FILTERED) {
             alignas(64) S t[GEOM_SLOTS];
             geom_rows_filtered(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
-            for (int j = 0; j < GEOM_SLOTS; ++j) acc(j, t[j]);
+            for (int j = 0; j < GEOM_SLOTS; ++j)
+                if (filtered_geom_slot(j)) acc(j, t[j]);
             for (int k = 0; k < q.sf.K; ++k)  // d(gain a)/da = gain
                 for (int j = 3; j < 6; ++j) acc.g[G_WAVES + G_PER_WAVE * k + j] *= q.gains[k];
         }

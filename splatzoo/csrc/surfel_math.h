@@ -951,33 +951,34 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
         v_B[i] = double(Gs[G_CY + i]) + cy * v_C[i] + double(Gs[G_B + i]);
     }
     double v_cx = double(Gs[G_CENTER]), v_cy = double(Gs[G_CENTER + 1]);
+    // anti-aliased, the gains exp(-k^T b k / 2) with b the blur the pixels used (Geom::blur, rounded to S):
+    // d/dk = -gain b k, d/db = -gain k k^T / 2, times the summed dL/d gain x gain = a . (dL/da)
     const bool filtered = st.pixel_filter > 0;
+    CentreFootprint fp{};
+    if (filtered) fp = centre_footprint(st, T9, center);
+    const double b[3] = {double(S(fp.blur[0])), double(S(fp.blur[1])), double(S(fp.blur[2]))};
+    double v_blur[3] = {0.0, 0.0, 0.0};
     for (int k = 0; k < K; ++k) {
         const R* w = Gs + G_WAVES + G_PER_WAVE * k;
-        v_wv[2 * k] = S(w[0]);
-        v_wv[2 * k + 1] = S(w[1]);
+        double v_kx = double(w[0]), v_ky = double(w[1]);
+        if (filtered) {
+            const double v_g = double(wa[3 * k]) * double(w[3]) + double(wa[3 * k + 1]) * double(w[4]) +
+                               double(wa[3 * k + 2]) * double(w[5]);
+            const double kx = double(wv[2 * k]), ky = double(wv[2 * k + 1]);
+            v_kx -= v_g * (b[0] * kx + b[1] * ky);
+            v_ky -= v_g * (b[1] * kx + b[2] * ky);
+            v_blur[0] -= 0.5 * v_g * kx * kx;
+            v_blur[1] -= v_g * kx * ky;
+            v_blur[2] -= 0.5 * v_g * ky * ky;
+        }
+        v_wv[2 * k] = S(v_kx);
+        v_wv[2 * k + 1] = S(v_ky);
         v_wp[k] = S(w[2]);
         v_wa[3 * k] = S(w[3]);
         v_wa[3 * k + 1] = S(w[4]);
         v_wa[3 * k + 2] = S(w[5]);
     }
     if (filtered) {
-        const CentreFootprint fp = centre_footprint(st, T9, center);
-        // the gains exp(-k^T b k / 2) with b the blur the pixels used (Geom::blur, rounded to S): d/dk = -gain b k,
-        // d/db = -gain k k^T / 2, times the summed dL/d gain x gain = a . (dL/da)
-        const double b[3] = {double(S(fp.blur[0])), double(S(fp.blur[1])), double(S(fp.blur[2]))};
-        double v_blur[3] = {0.0, 0.0, 0.0};
-        for (int k = 0; k < K; ++k) {
-            const R* w = Gs + G_WAVES + G_PER_WAVE * k;
-            const double v_g = double(wa[3 * k]) * double(w[3]) + double(wa[3 * k + 1]) * double(w[4]) +
-                               double(wa[3 * k + 2]) * double(w[5]);
-            const double kx = double(wv[2 * k]), ky = double(wv[2 * k + 1]);
-            v_wv[2 * k] = S(double(Gs[G_WAVES + G_PER_WAVE * k]) - v_g * (b[0] * kx + b[1] * ky));
-            v_wv[2 * k + 1] = S(double(Gs[G_WAVES + G_PER_WAVE * k + 1]) - v_g * (b[1] * kx + b[2] * ky));
-            v_blur[0] -= 0.5 * v_g * kx * kx;
-            v_blur[1] -= v_g * kx * ky;
-            v_blur[2] -= 0.5 * v_g * ky * ky;
-        }
         const double v_cz = centre_blur_backward(st, fp, v_blur, v_A, v_B);
         v_C[2] += v_cz;
         v_A[2] += cx * v_cz;
