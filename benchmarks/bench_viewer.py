@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     from splatzoo.data.synthetic import make_synthetic_scene
     from splatzoo.runs import train
     from splatzoo.training import TrainConfig
-    from splatzoo.viewer import SETTLE_SECONDS, browser_camera, fit_size, render_view, view
+    from splatzoo.viewer import SETTLE_SECONDS, browser_camera, fit_size, render_frame, view
 
     with tempfile.TemporaryDirectory() as tmp:
         data = make_synthetic_scene("sweater", Path(tmp) / "data", views=24, width=256, height=256)
@@ -82,10 +82,10 @@ def main(argv=None) -> int:
         small = browser_camera(c.wxyz, c.position, c.fov, *fit_size(full_cam.width, full_cam.height, 256))
         timings = {}
         for name, cam in (("moving", small), ("full", full_cam)):
-            render_view(model, cam, "rgb", backend=args.backend)
+            render_frame(model, cam, "rgb", backend=args.backend)
             t = time.perf_counter()
             for _ in range(3):
-                render_view(model, cam, "rgb", backend=args.backend)
+                render_frame(model, cam, "rgb", backend=args.backend)
             timings[name] = (time.perf_counter() - t) / 3
         print("| measure | value |")
         print("|---|---|")

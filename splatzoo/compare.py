@@ -292,7 +292,7 @@ def random_color_surfels(model, camera, seed: int = 0):
     """The model's surfels with one random colour each and no waves: shows primitive shapes."""
     from .types import Surfels
 
-    s = model.surfels(camera)
+    s = model.surfels(camera.to(next(model.parameters()).device, torch.float32))
     g = torch.Generator().manual_seed(seed)
     colors = torch.rand(s.num, 3, generator=g).to(s.means)
     return Surfels.constant_color(s.means, s.quats, s.scales, s.opacities, colors)
@@ -300,9 +300,6 @@ def random_color_surfels(model, camera, seed: int = 0):
 
 @torch.no_grad()
 def plot_comparison(scene, run_dirs: dict[str, Run], path, *, backend: str = "auto", max_views: int = 3) -> None:
-    from .evaluate import render_view
-    from .rasterizers import rasterize
-
     views = (scene.test or scene.train)
     views = views[:: max(1, len(views) // max_views)][:max_views]
     models = {label: run.model() for label, run in run_dirs.items()}
@@ -312,12 +309,11 @@ def plot_comparison(scene, run_dirs: dict[str, Run], path, *, backend: str = "au
     for r, v in enumerate(views):
         cells = [("ground truth", v.image_float())]
         for label, m in models.items():
-            cells.append((label, render_view(m, v.camera, scene.background, backend)))
+            cells.append((label, m.render(v.camera, background=scene.background, backend=backend).image()))
         for label, m in models.items():
-            cam = v.camera.to(dtype=torch.float32)
-            img = rasterize(random_color_surfels(m, cam), cam, backend=backend, background=torch.ones(3),
-                            settings=m.raster_settings).rgb.clamp(0, 1)
-            cells.append((f"{label} surfels", img))
+            shapes = random_color_surfels(m, v.camera)
+            cells.append((f"{label} surfels", m.render(v.camera, background=1.0, backend=backend,
+                                                         surfels=shapes).image()))
         for c, (title, img) in enumerate(cells):
             ax = axes[r, c]
             ax.imshow(img.numpy())

@@ -11,7 +11,7 @@ import torch
 
 from .errors import SplatzooError
 from .io import atomic_path
-from .rasterizers import rasterize, resolve_backend
+from .rasterizers import resolve_backend
 from .types import Camera
 
 LPIPS_NET = "vgg"
@@ -23,16 +23,6 @@ def _device(model) -> torch.device:
 
 
 @torch.no_grad()
-def render_view(model, camera: Camera, background, backend: str) -> torch.Tensor:
-    """float [H,W,3] in [0,1] on the CPU."""
-    device = _device(model)
-    cam = camera.to(device, torch.float32)
-    bg = torch.tensor(background, dtype=torch.float32, device=device)
-    return rasterize(model.surfels(cam), cam, backend=backend, background=bg,
-                     settings=model.raster_settings).rgb.clamp(0, 1).cpu()
-
-
-@torch.no_grad()
 def measure_fps(model, cameras: list[Camera], background, backend: str, min_frames: int = 10) -> float:
     """Frames per second over the cameras (cycled to at least min_frames), after one warm-up pass."""
     if not cameras:
@@ -41,18 +31,18 @@ def measure_fps(model, cameras: list[Camera], background, backend: str, min_fram
     cams = [c.to(device, torch.float32) for c in cameras]
     bg = torch.tensor(background, dtype=torch.float32, device=device)
     for c in cams[:2]:
-        rasterize(model.surfels(c), c, backend=backend, background=bg, settings=model.raster_settings)
+        model.render(c, background=bg, backend=backend)
     frames = max(min_frames, len(cams))
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     sync()
     t0 = time.perf_counter()
     for i in range(frames):
-        c = cams[i % len(cams)]
-        rasterize(model.surfels(c), c, backend=backend, background=bg, settings=model.raster_settings)
+        model.render(cams[i % len(cams)], background=bg, backend=backend)
     sync()
     return frames / (time.perf_counter() - t0)
 
 
+@torch.no_grad()
 def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None = None,
              iterations: int | None = None, lpips_net: str = LPIPS_NET, lpips_convention: str = LPIPS_CONVENTION,
              split: str = "test") -> dict:
@@ -65,7 +55,7 @@ def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None
     used = "test" if views is scene.test else "train"
     ps, ss, ls = [], [], []
     for v in views:
-        pred, gt = render_view(model, v.camera, scene.background, backend), v.image_float()
+        pred, gt = model.render(v.camera, background=scene.background, backend=backend).image(), v.image_float()
         ps.append(psnr(pred, gt))
         ss.append(ssim(pred, gt))
         ls.append(lpips(pred, gt, net=lpips_net, convention=lpips_convention) if min(gt.shape[:2]) >= 32 else float("nan"))
@@ -104,6 +94,7 @@ def area_resize(img: torch.Tensor, width: int, height: int) -> torch.Tensor:
     return torch.from_numpy(out.reshape(height, width, -1))
 
 
+@torch.no_grad()
 def evaluate_scales(model, scene, scales, *, backend: str = "auto", lpips_net: str = LPIPS_NET,
                     lpips_convention: str = LPIPS_CONVENTION) -> dict:
     """Quality when rendered smaller than the test images: per scale, PSNR/SSIM/LPIPS of the small render against
@@ -116,11 +107,11 @@ def evaluate_scales(model, scene, scales, *, backend: str = "auto", lpips_net: s
     scores = {scale: {"psnr": [], "ssim": [], "lpips": [], "consistency_psnr": []} for scale in scales}
     sizes = {}
     for v in views:  # each view's image and full-size render once, for every scale
-        image, full = v.image_float(), render_view(model, v.camera, scene.background, backend)
+        image, full = v.image_float(), model.render(v.camera, background=scene.background, backend=backend).image()
         for scale in scales:
             cam = v.camera.scaled(scale)
             sizes[scale] = [cam.width, cam.height]
-            small = render_view(model, cam, scene.background, backend)
+            small = model.render(cam, background=scene.background, backend=backend).image()
             gt = area_resize(image, cam.width, cam.height)
             r = scores[scale]
             r["psnr"].append(psnr(small, gt))
@@ -173,6 +164,7 @@ def write_png(path, img) -> None:
             raise SplatzooError(f"could not write image {path}")
 
 
+@torch.no_grad()
 def save_test_renders(model, scene, out_dir, *, backend: str = "auto", split: str = "test") -> list[Path]:
     backend = resolve_backend(backend, _device(model))
     views = scene.test if split == "test" else scene.train
@@ -180,7 +172,7 @@ def save_test_renders(model, scene, out_dir, *, backend: str = "auto", split: st
     paths = []
     for v in views:
         p = out_dir / (Path(v.name).stem + ".png")
-        write_png(p, render_view(model, v.camera, scene.background, backend))
+        write_png(p, model.render(v.camera, background=scene.background, backend=backend).image())
         paths.append(p)
     return paths
 
@@ -216,6 +208,7 @@ def orbit_cameras(cameras: list[Camera], frames: int = 60) -> list[Camera]:
     return cams
 
 
+@torch.no_grad()
 def write_video(model, cameras: list[Camera], background, path, *, backend: str) -> Path:
     """Render `cameras` into a video at `path`: WebM (VP9, else VP8) plays in every current browser; OpenCV's
     wheels carry no H.264 encoder and their mp4 (mp4v) plays in video players only, so it is the last resort
@@ -235,7 +228,8 @@ def write_video(model, cameras: list[Camera], background, path, *, backend: str)
                 if not writer.isOpened():
                     raise NoEncoder
                 for c in cameras:
-                    writer.write(np.ascontiguousarray(to_uint8(render_view(model, c, background, backend))[..., ::-1]))
+                    frame = to_uint8(model.render(c, background=background, backend=backend).image())
+                    writer.write(np.ascontiguousarray(frame[..., ::-1]))
                 writer.release()
             return target
         except NoEncoder:

@@ -123,7 +123,7 @@ def render_depth_frames(model, cameras: Iterable[Camera], *, depth: str = "media
                         backend: str = "auto"):
     """Yield (camera, depth [H,W] float32 with 0 where masked, colour [H,W,3] float32 in [0,1], alpha [H,W])
     for each camera. Colour is un-premultiplied (rendered over black, divided by alpha)."""
-    from .rasterizers import rasterize, resolve_backend
+    from .rasterizers import resolve_backend
 
     if depth not in DEPTH_KINDS:
         raise SplatzooError(f"--depth must be one of {', '.join(DEPTH_KINDS)}, got {depth!r}")
@@ -131,8 +131,7 @@ def render_depth_frames(model, cameras: Iterable[Camera], *, depth: str = "media
     backend = resolve_backend(backend, device)
     bg = torch.zeros(3, dtype=torch.float32, device=device)
     for cam in cameras:
-        c = cam.to(device, torch.float32)
-        out = rasterize(model.surfels(c), c, backend=backend, background=bg, settings=model.raster_settings)
+        out = model.render(cam, background=bg, backend=backend)
         alpha = out.alpha
         d = out.median_depth if depth == "median" else out.depth
         keep = (alpha >= alpha_threshold) & torch.isfinite(d) & (d > 0)

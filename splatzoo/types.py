@@ -221,3 +221,7 @@ class RenderOutput:
 
     def tensors(self) -> dict[str, torch.Tensor]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def image(self) -> torch.Tensor:
+        """rgb as a picture: float [H,W,3] clamped to [0,1], cut from autograd, on the CPU."""
+        return self.rgb.detach().clamp(0, 1).cpu()

@@ -151,11 +151,9 @@ def _flat(surfels: Surfels, colors: torch.Tensor) -> Surfels:
                                   colors.to(surfels.means))
 
 
-def render_view(model, cam: Camera, mode: str = "rgb", *, background=(0.0, 0.0, 0.0), backend: str = "auto",
-                max_waves: int | None = None) -> np.ndarray:
+def render_frame(model, cam: Camera, mode: str = "rgb", *, background=(0.0, 0.0, 0.0), backend: str = "auto",
+                 max_waves: int | None = None) -> np.ndarray:
     """One viewer frame: uint8 [H,W,3] of `model` seen from `cam` in render `mode` (see MODES)."""
-    from .rasterizers import rasterize
-
     if mode not in MODES:
         raise SplatzooError(f"unknown render mode {mode!r}; choose one of {', '.join(MODES)}")
     device = next(model.parameters()).device
@@ -174,7 +172,7 @@ def render_view(model, cam: Camera, mode: str = "rgb", *, background=(0.0, 0.0, 
         elif mode == "frequency":  # 0.5 cycles per pixel (Nyquist) in the middle of the map
             surfels = _flat(surfels, _colormap(surfel_cycles_per_pixel(surfels, cam)))
             bg = (0.0, 0.0, 0.0)
-        out = rasterize(surfels, cam, backend=backend, background=bg, settings=model.raster_settings)
+        out = model.render(cam, background=bg, backend=backend, surfels=surfels)
         if mode in ("rgb", "surfels", "waves", "frequency"):
             image = out.rgb
         elif mode == "alpha":
@@ -198,7 +196,7 @@ def render_layout(models: list, cam: Camera, mode: str, backgrounds: list, *, ba
     each gets an equal slice of the width."""
     n = len(models)
     if n == 1:
-        return render_view(models[0], cam, mode, background=backgrounds[0], backend=backend, max_waves=max_waves)
+        return render_frame(models[0], cam, mode, background=backgrounds[0], backend=backend, max_waves=max_waves)
     width = max(1, (cam.width - gap * (n - 1)) // n)
     K = cam.K.clone()
     K[0, 2] = width / 2
@@ -206,7 +204,7 @@ def render_layout(models: list, cam: Camera, mode: str, backgrounds: list, *, ba
     image = np.full((cam.height, cam.width, 3), 255, np.uint8)
     for i, (model, bg) in enumerate(zip(models, backgrounds)):
         x = i * (width + gap)
-        image[:, x:x + width] = render_view(model, part, mode, background=bg, backend=backend, max_waves=max_waves)
+        image[:, x:x + width] = render_frame(model, part, mode, background=bg, backend=backend, max_waves=max_waves)
     return image
 
 

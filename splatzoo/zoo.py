@@ -183,6 +183,13 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     antialias = ckpt.get("antialias", False)
     if not isinstance(antialias, bool):
         raise fail(f"'antialias' must be true or false, found {_brief(antialias)}")
+    background = ckpt.get("background")
+    if background is not None:
+        ok = isinstance(background, (list, tuple)) and len(background) == 3 and all(
+            isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in background)
+        if not ok:
+            raise fail(f"'background' must be a colour of 3 finite numbers, found {_brief(background)}")
+        background = tuple(float(c) for c in background)
     try:
         spec = MODELS.get(name)
     except SplatzooError as e:  # unknown or broken plugin model: the registry's message, located
@@ -231,6 +238,7 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     _check_shapes(name, expected, {**model.state_dict(), **model.per_primitive()}, variable, fail)
     model.name = name
     model.antialias = antialias
+    model.background = background
     return model
 
 

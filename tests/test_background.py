@@ -77,6 +77,9 @@ def test_no_flag_trains_as_the_right_explicit_one(white_scene, tmp_path):
     record = Run(tmp_path / "auto").record()
     assert record["scene_options"]["background"] == "auto" and "white" in record["scene"]["background_note"]
     assert Run(tmp_path / "white").record()["scene_options"]["background"] == [1.0, 1.0, 1.0]
+    # the trained model renders over its backdrop by default, from Python as in every command
+    loaded = Run(tmp_path / "auto").model()
+    assert auto.background == loaded.background == (1.0, 1.0, 1.0)
 
 
 def test_random_background_changes_every_step():
@@ -100,6 +103,7 @@ def test_random_background_changes_every_step():
         corners.append(target[0, 0])
         assert torch.allclose(target[12, 12], torch.tensor([200, 40, 40]) / 255, atol=1e-6)
     assert not torch.allclose(corners[0], corners[1])
+    assert trainer.net.background is None  # no backdrop was learned: it renders over black unless told
     again = trainer._loss(views[0], 1).target
     assert torch.equal(again[0, 0], corners[0])  # the same step draws the same colour (ranks, resume)
 

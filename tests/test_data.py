@@ -19,7 +19,7 @@ import pycolmap  # noqa: E402
 
 from splatzoo.data import View, load_scene  # noqa: E402
 from splatzoo.data.colmap import write_model  # noqa: E402
-from splatzoo.data.synthetic import (MeshScene, get_spec, make_synthetic_scene, render_view,  # noqa: E402
+from splatzoo.data.synthetic import (MeshScene, get_spec, make_synthetic_scene, render_mesh,  # noqa: E402
                                      synthetic_cameras)
 from splatzoo.errors import DataError  # noqa: E402
 
@@ -175,12 +175,12 @@ def test_synthetic_is_deterministic_and_textured(tmp_path):
         assert (a / "images" / name).read_bytes() == (b / "images" / name).read_bytes()
     spec = get_spec("sweater")
     cam = synthetic_cameras("sweater", 8, 256, 256)[0]
-    rgb, cov = render_view(MeshScene(spec.build()), cam)
+    rgb, cov = render_mesh(MeshScene(spec.build()), cam)
     # High frequency content: many large vertical jumps between neighbouring pixels inside the object.
     inside = (cov[1:] == 1) & (cov[:-1] == 1)
     jump = np.abs(np.diff(rgb.mean(2), axis=0))[inside]
     assert (jump > 0.15).mean() > 0.1
-    plain_rgb, _ = render_view(MeshScene(get_spec("plain").build()), cam)
+    plain_rgb, _ = render_mesh(MeshScene(get_spec("plain").build()), cam)
     pj = np.abs(np.diff(plain_rgb.mean(2), axis=0))[inside]
     assert (pj > 0.15).mean() < 0.01
 
@@ -191,7 +191,7 @@ def test_every_scene_renders(tmp_path):
     assert {"sweater", "vest", "shirt", "boots", "plain"} <= set(SCENES)
     for name, spec in SCENES.items():
         mesh = MeshScene(spec.build())
-        rgb, cov = render_view(mesh, synthetic_cameras(name, 4, 32, 32)[1])
+        rgb, cov = render_mesh(mesh, synthetic_cameras(name, 4, 32, 32)[1])
         assert rgb.shape == (32, 32, 3) and 0.05 < cov.mean() <= 1 and np.isfinite(rgb).all()
 
 
@@ -273,7 +273,7 @@ def test_blender_dataset(tmp_path):
         (root / split).mkdir(parents=True)
         frames = []
         for i, cam in enumerate(sel):
-            rgb, cov = render_view(mesh, cam)
+            rgb, cov = render_mesh(mesh, cam)
             rgba = np.concatenate([rgb / np.maximum(cov, 1e-6)[..., None], cov[..., None]], 2)
             px = (np.clip(rgba, 0, 1) * 255 + 0.5).astype(np.uint8)
             cv2.imwrite(str(root / split / f"r_{i}.png"), px[:, :, [2, 1, 0, 3]])

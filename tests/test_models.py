@@ -45,6 +45,40 @@ def test_model_conformance(name, tmp_path):
         assert torch.equal(v, getattr(b, k)), k
 
 
+@pytest.mark.parametrize("name", splatzoo.list_models())
+def test_model_render_uses_its_own_settings(name, tmp_path):
+    """model.render is the one render call: the model's raster settings (the pixel-footprint filter it was trained
+    with) and its background, kept through save and load; a camera in float64 is taken to the model's dtype."""
+    from splatzoo.rasterizers.common import ANTIALIASED, SETTINGS
+
+    pts, cols = point_cloud()
+    model = splatzoo.create_model(name, pts, cols, seed=1)
+    with torch.no_grad():
+        model.logit_opacity.fill_(1.0)
+    cam = CAM.scaled(0.25)  # 8x8: a surfel under a pixel, where the filter changes the picture most
+    cam32 = cam.to(dtype=torch.float32)
+    for antialias, settings in ((False, SETTINGS), (True, ANTIALIASED)):
+        model.antialias = antialias
+        out = model.render(cam, backend="reference")
+        assert out.rgb.dtype == torch.float32 and out.rgb.requires_grad
+        want = rasterize(model.surfels(cam32), cam32, backend="reference", settings=settings)
+        for k, v in want.tensors().items():
+            assert torch.equal(v, getattr(out, k)), (antialias, k)
+    plain = rasterize(model.surfels(cam32), cam32, backend="reference").rgb
+    assert not torch.equal(out.rgb, plain), "the filter should change an 8x8 render of 64 surfels"
+    model.background = (0.25, 0.5, 1.0)
+    path = tmp_path / "m.pt"
+    splatzoo.save_model(model, path)
+    loaded = splatzoo.load_model(path)
+    assert loaded.background == (0.25, 0.5, 1.0) and loaded.antialias
+    with torch.no_grad():
+        a, b = model.render(cam, backend="reference"), loaded.render(cam, backend="reference")
+        black = loaded.render(cam, backend="reference", background=0.0)
+    assert torch.equal(a.rgb, b.rgb)
+    empty = b.alpha < 0.5
+    assert empty.any() and torch.allclose(b.rgb - black.rgb, (1 - b.alpha)[..., None] * torch.tensor([0.25, 0.5, 1.0]))
+
+
 def test_gabor_residual_maps_to_the_wave_bank():
     """The default: c0 = color_base, a_i = w_i d (d = color_diff); it starts as the 2DGS surfel with the release's
     waves around it (d = half the point colour, w = 0.1 U(0,1))."""
@@ -170,3 +204,18 @@ def test_files_from_before_color_param_mean_the_paper_model():
     back = model_from_checkpoint(ck)
     assert back.config.color_param == "paper"
     assert torch.equal(back.surfels(CAM).base_color, paper.surfels(CAM).base_color)
+
+
+def test_readme_python_example_runs(tmp_path, monkeypatch):
+    """The README's Python example, as written."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    code = re.search(r"```python\n(.*?)```", readme, re.S).group(1)
+    assert "model.render(" in code
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(code, "README.md", "exec"), scope)
+    assert scope["picture"].shape == (128, 128, 3) and (tmp_path / "model.pt").is_file()
+    assert scope["out"].rgb.shape == (128, 128, 3)

@@ -17,7 +17,7 @@ from splatzoo.errors import SplatzooError
 from splatzoo.runs import train
 from splatzoo.training import TrainConfig
 from splatzoo.viewer import (LiveModel, Source, Viewer, browser_camera, camera_pose, check_address, expand_runs,
-                             load_source, render_layout, render_view, surfel_cycles_per_pixel, view)
+                             load_source, render_layout, render_frame, surfel_cycles_per_pixel, view)
 
 pytest.importorskip("viser")
 
@@ -62,7 +62,7 @@ def test_camera_round_trip():
 def test_render_modes(compare_dir):
     gabor = load_source(compare_dir / "gabor", "cpu")
     model, cam = gabor.model(), gabor.views[0].camera
-    images = {mode: render_view(model, cam, mode, backend="cpu")
+    images = {mode: render_frame(model, cam, mode, backend="cpu")
               for mode in ("rgb", "depth", "normal", "alpha", "surfels", "waves", "frequency")}
     for mode, image in images.items():
         assert image.shape == (48, 48, 3) and image.dtype == np.uint8, mode
@@ -72,10 +72,10 @@ def test_render_modes(compare_dir):
     assert alpha[24, 24] > 0.5 and alpha[0, 0] < 0.2 and np.all(images["alpha"][..., 0] == images["alpha"][..., 2])
     # 2DGS has no waves: its wave map is the colour map's zero everywhere a surfel covers
     two = load_source(compare_dir / "2dgs", "cpu").model()
-    waves = render_view(two, cam, "waves", backend="cpu").astype(float)
+    waves = render_frame(two, cam, "waves", backend="cpu").astype(float)
     assert waves.max() < 10  # inferno's zero is black
     with pytest.raises(SplatzooError, match="render mode"):
-        render_view(model, cam, "x-ray")
+        render_frame(model, cam, "x-ray")
 
 
 def test_frequency_against_nyquist():
@@ -102,8 +102,8 @@ def test_side_by_side_shares_the_camera(compare_dir):
     K = cam.K.clone()
     K[0, 2] = 47 / 2
     half = Camera(cam.world_to_camera, K, 47, 96)
-    assert np.array_equal(both[:, :47], render_view(a.model(), half, "rgb", backend="cpu"))
-    assert np.array_equal(both[:, 49:96], render_view(b.model(), half, "rgb", backend="cpu"))
+    assert np.array_equal(both[:, :47], render_frame(a.model(), half, "rgb", backend="cpu"))
+    assert np.array_equal(both[:, 49:96], render_frame(b.model(), half, "rgb", backend="cpu"))
     assert np.all(both[:, 47:49] == 255)
 
 
@@ -208,7 +208,7 @@ def test_the_page_shows_what_the_camera_sees(compare_dir):
             c = session.client.camera
             cam = browser_camera(c.wxyz, c.position, c.fov, c.image_width, c.image_height)
             assert (cam.width, cam.height) == (640, 480)
-            direct = render_view(source.model(), cam, "rgb", background=source.background, backend="cpu")
+            direct = render_frame(source.model(), cam, "rgb", background=source.background, backend="cpu")
             # the control panel (top right), the notice about software WebGL (top left) and the axes (bottom left)
             # cover parts of the page
             region = (slice(260, 480), slice(60, 640))

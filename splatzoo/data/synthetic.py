@@ -419,7 +419,7 @@ def _camera_rays(cam: Camera, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarra
     return origins, dirs
 
 
-def render_view(mesh: MeshScene, cam: Camera, supersample: int = SUPERSAMPLE,
+def render_mesh(mesh: MeshScene, cam: Camera, supersample: int = SUPERSAMPLE,
                 background=(0.0, 0.0, 0.0), specular: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Exact render: float32 RGB [H,W,3] and coverage [H,W], averaging supersample^2 rays per pixel."""
     s = supersample
@@ -532,7 +532,7 @@ def make_synthetic_scene(name: str, out, views: int = 48, width: int = 256, heig
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
         for i, cam in enumerate(cams):
-            rgb, cov = render_view(mesh, cam, supersample, background=background, specular=spec.specular)
+            rgb, cov = render_mesh(mesh, cam, supersample, background=background, specular=spec.specular)
             _write_png(tmp / "images" / cam.name, rgb)
             _write_png(tmp / "masks" / cam.name, cov)
             if (i + 1) % 8 == 0 or i + 1 == len(cams):

@@ -11,7 +11,7 @@ from torch import nn
 
 from ..errors import ShapeError, SplatzooError
 from ..geometry import normals_to_quats
-from ..types import Camera, Surfels
+from ..types import Camera, RenderOutput, Surfels
 
 
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
@@ -41,6 +41,9 @@ class SplatModel(nn.Module):
     # rendered with the pixel-footprint filter (RasterSettings.pixel_filter): trained so, and so every render of it
     # (evaluation, viewer, mesh) must be; kept in the checkpoint
     antialias: bool = False
+    # the colour [3] behind the surfels that the model was trained over (the photos' own backdrop), the default of
+    # render(); None: black (a model trained over random colours, or made outside training). Kept in the checkpoint
+    background: tuple[float, float, float] | None = None
     # names of buffers with one row per primitive (e.g. per-surfel wave counts): densification and loading edit
     # them with the parameters; they are not trained
     primitive_buffers: tuple[str, ...] = ()
@@ -70,6 +73,27 @@ class SplatModel(nn.Module):
         """Adam parameter groups: dicts with "name", "params" and "lr". The group named "means" gets the
         exponential position schedule."""
         raise NotImplementedError
+
+    # --- rendering ----------------------------------------------------------------------------------
+    def render(self, camera: Camera, *, background=None, backend="auto", surfels: Surfels | None = None
+               ) -> RenderOutput:
+        """The model seen from `camera`, rendered as it was trained: with its own raster settings (the pixel-footprint
+        filter, see `antialias`) over `background` (a colour [3] or a grey scalar; default: the model's own
+        `background`, black if it has none). Differentiable with respect to the parameters (not the camera).
+
+        The camera is moved to the model's device and dtype. backend: "auto" or a name (splatzoo.rasterizers).
+        surfels: other surfels of this model for this camera to render with its settings instead of
+        `surfels(camera)`, e.g. a recolouring for display or the model with some waves removed.
+        """
+        from ..rasterizers import rasterize
+
+        p = next(self.parameters(), None)
+        cam = camera.to(p.device, p.dtype) if p is not None else camera
+        if background is None:
+            background = self.background
+        if surfels is None:
+            surfels = self.surfels(cam)
+        return rasterize(surfels, cam, backend=backend, background=background, settings=self.raster_settings)
 
     # --- generic helpers ----------------------------------------------------------------------------
     @property
@@ -175,6 +199,8 @@ class SplatModel(nn.Module):
               "state": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
         if self.antialias:  # absent means False: checkpoints from before the option load unchanged
             ck["antialias"] = True
+        if self.background is not None:  # absent means black
+            ck["background"] = [float(c) for c in self.background]
         return ck
 
     def load_checkpoint_state(self, state: dict) -> None:

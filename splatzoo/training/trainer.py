@@ -14,7 +14,6 @@ import torch
 
 from ..errors import SplatzooError
 from ..evaluate import area_resize
-from ..rasterizers import rasterize
 from ..types import Camera, RenderOutput
 from ..zoo import create_model, model_from_checkpoint
 from . import mcmc
@@ -190,6 +189,8 @@ class Trainer:
             self.view_order = [int(i) for i in state["view_order"]]
         self.background = torch.tensor(scene.background, dtype=torch.float32, device=device)
         self.random_background = bool(getattr(scene, "random_background", False))
+        # the model renders over the photos' backdrop by default once trained (random colours teach no backdrop)
+        self.net.background = None if self.random_background else tuple(float(c) for c in scene.background)
         self.view_index = {id(v): i for i, v in enumerate(scene.train)}
         self.densify_on = cfg.densify and hasattr(self.net, "logit_opacity")
         self.mcmc = self.densify_on and cfg.strategy == "mcmc"
@@ -260,8 +261,7 @@ class Trainer:
             cam = cam.scaled(scale)
             target = area_resize(target, cam.width, cam.height)
         cam, target = cam.to(self.device, torch.float32), target.to(self.device)
-        render = rasterize(self.net.surfels(cam), cam, backend=self.backend, background=bg,
-                           settings=self.net.raster_settings)
+        render = self.net.render(cam, background=bg, backend=self.backend)
         l_photo = photometric_loss(render.rgb, target, cfg.lambda_dssim)
         loss = l_photo
         if self.mcmc:
@@ -322,8 +322,8 @@ class Trainer:
                                  for v in train[:: max(1, len(train) // PROBE_VIEWS)][:PROBE_VIEWS]]
         total = 0.0
         for cam, target in self._probe_views:
-            rgb = rasterize(surfels_of(cam), cam, backend=self.backend, background=self.background,
-                            settings=self.net.raster_settings).rgb
+            rgb = self.net.render(cam, background=self.background, backend=self.backend,
+                                  surfels=surfels_of(cam)).rgb
             total += float(((rgb - target) ** 2).mean())
         return total / len(self._probe_views)
 
@@ -396,12 +396,8 @@ def test_psnr(model, scene, backend: str, max_views: int = 8) -> float:
     from ..metrics import psnr
 
     views = scene.test[:: max(1, len(scene.test) // max_views)][:max_views]
-    device = next(model.parameters()).device
-    bg = torch.tensor(scene.background, dtype=torch.float32, device=device)
     vals = []
     for v in views:
-        cam = v.camera.to(device, torch.float32)
-        rgb = rasterize(model.surfels(cam), cam, backend=backend, background=bg,
-                        settings=model.raster_settings).rgb.clamp(0, 1)
+        rgb = model.render(v.camera, background=scene.background, backend=backend).rgb.clamp(0, 1)
         vals.append(min(psnr(rgb.cpu(), v.image_float()), 100.0))
     return float(sum(vals) / len(vals))
