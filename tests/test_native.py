@@ -100,6 +100,45 @@ def test_settings_struct_has_every_field_of_raster_settings():
         assert getattr(struct, name) == getattr(SETTINGS, name), name
 
 
+# ---- the surfel fields: one table ----------------------------------------------------------------------------------
+
+def test_the_shipped_field_header_is_generated_from_the_table():
+    """csrc/surfel_fields.h is what splatzoo/rasterizers/fields.py makes of the Surfels declarations."""
+    from splatzoo.rasterizers import fields as field_header
+
+    assert field_header.HEADER.read_text() == field_header.header_text(), (
+        "csrc/surfel_fields.h is stale: run python -m splatzoo.rasterizers.fields")
+    assert field_header.main(["--check"]) == 0
+
+
+def test_the_extension_takes_the_fields_of_the_table():
+    from splatzoo.types import SURFEL_FIELDS
+
+    C = native.load("cpu")
+    assert tuple(C.SURFEL_FIELDS) == tuple(f.name for f in SURFEL_FIELDS) == native.SURFEL_FIELDS
+    assert [f.name for f in SURFEL_FIELDS][:3] == ["means", "quats", "scales"]
+    assert {f.role for f in SURFEL_FIELDS} == {"geometry", "opacity", "appearance"}
+    # a build whose table differs (a header not regenerated after a field was added) is refused, naming the fix
+    class Stale:
+        SURFEL_FIELDS = native.SURFEL_FIELDS[:-1]
+
+    with pytest.raises(BackendUnavailableError, match="python -m splatzoo.rasterizers.fields"):
+        native._check_fields(Stale)
+
+
+@pytest.mark.parametrize("name", [f.name for f in fields(Surfels) if f.name != "wave_counts"])
+def test_the_extension_checks_every_field_by_name(name):
+    """Below Surfels.validate, the bindings check each field's shape from the table and name it."""
+    s, cam = random_scene(10, 16, 16, 2, seed=1)
+    C = native.load("cpu")
+    tensors = s.tensors()
+    tensors[name] = tensors[name][:-1] if name != "means" else tensors[name][:, :2]
+    cam = cam.to("cpu", torch.float64)
+    KR, Kt, eye = (cam.K @ cam.R).float(), (cam.K @ cam.t).float(), cam.center.float()
+    with pytest.raises(RuntimeError, match=name):
+        C.render(native.settings_struct(C, SETTINGS), list(tensors.values()), None, KR, Kt, eye, 16, 16, False)
+
+
 def test_bad_settings_are_refused():
     from splatzoo.errors import SplatzooError
 

@@ -82,11 +82,32 @@ sz::SurfelArgs<S> surfel_args(const sz::Settings& st, const TensorMap& c, int64_
     const Tensor& wv = need(c, "wave_vectors");
     const Tensor& order = need(c, "order");
     auto wc = c.find("wave_counts");
-    return {st, int(wv.size(0)), int(order.size(0)), int(wv.size(1)), int(W), int(H), order.data_ptr<int>(),
-            need(c, "T").data_ptr<S>(), need(c, "centers").data_ptr<S>(), need(c, "center_depths").data_ptr<S>(),
-            need(c, "normals").data_ptr<S>(), need(c, "opacities").data_ptr<S>(), need(c, "base_color").data_ptr<S>(),
-            wv.data_ptr<S>(), need(c, "wave_phases").data_ptr<S>(), need(c, "wave_amplitudes").data_ptr<S>(),
-            need(c, "boxes").data_ptr<S>(), wc != c.end() ? wc->second.data_ptr<int>() : nullptr};
+    sz::SurfelArgs<S> a{};
+    a.st = st;
+    a.N = int(wv.size(0));
+    a.M = int(order.size(0));
+    a.K = int(wv.size(1));
+    a.W = int(W);
+    a.H = int(H);
+    a.order = order.data_ptr<int>();
+    a.T = need(c, "T").data_ptr<S>();
+    a.center = need(c, "centers").data_ptr<S>();
+    a.depth = need(c, "center_depths").data_ptr<S>();
+    a.normal = need(c, "normals").data_ptr<S>();
+    a.boxes = need(c, "boxes").data_ptr<S>();
+#define SZ_SET_FIELD(name) a.name = need(c, #name).data_ptr<S>();
+    SZ_PAIR_FIELDS(SZ_SET_FIELD)
+#undef SZ_SET_FIELD
+    a.wcount = wc != c.end() ? wc->second.data_ptr<int>() : nullptr;
+    return a;
+}
+
+// GradArgs' v_<name> of every per-pair field, from the gradient buffers by name.
+template <class S>
+void set_field_gradients(sz::GradArgs<S>& g, TensorMap& v) {
+#define SZ_SET_GRADIENT(name) g.v_##name = v.at(#name).data_ptr<S>();
+    SZ_PAIR_FIELDS(SZ_SET_GRADIENT)
+#undef SZ_SET_GRADIENT
 }
 
 // The frame: binning, per-pixel saved state and, given `out` (the forward), the outputs to write. The backward
@@ -101,50 +122,57 @@ sz::FrameArgs<S> frame_args(const TensorMap& st, const TensorMap* out) {
             o("distortion"), p(st, "T_final"), p(st, "totals"), i("last"), i("median_index")};
 }
 
-void check_surfels(const Tensor& means, const Tensor& quats, const Tensor& scales, const Tensor& opac,
-                   const Tensor& base, const Tensor& wv, const Tensor& wp, const Tensor& wa) {
-    TORCH_CHECK(means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble,
-                "splatzoo render: float32 or float64 surfels expected, got ", means.scalar_type());
-    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "splatzoo render: means must be [N,3], got ", means.sizes());
-    TORCH_CHECK(means.size(0) < INT_MAX, "splatzoo render: too many surfels (", means.size(0), ")");
-    const int64_t N = means.size(0);
-    TORCH_CHECK(wv.dim() == 3 && wv.size(2) == 2, "splatzoo render: wave_vectors must be [N,K,2], got ", wv.sizes());
-    const int64_t K = wv.size(1);
-    auto want = [&](const Tensor& t, std::vector<int64_t> shape, const char* name) {
-        TORCH_CHECK(t.sizes().vec() == shape, "splatzoo render: ", name, " must have shape ", at::IntArrayRef(shape),
-                    ", got ", t.sizes());
-        TORCH_CHECK(t.scalar_type() == means.scalar_type() && t.device() == means.device(), "splatzoo render: ", name,
-                    " must be ", means.scalar_type(), " on ", means.device(), " like the means");
-    };
-    want(quats, {N, 4}, "quats");
-    want(scales, {N, 2}, "scales");
-    want(opac, {N}, "opacities");
-    want(base, {N, 3}, "base_color");
-    want(wv, {N, K, 2}, "wave_vectors");
-    want(wp, {N, K}, "wave_phases");
-    want(wa, {N, K, 3}, "wave_amplitudes");
+// The per-surfel fields in table order (surfel_fields.h), checked against the table: one dtype and device, shape
+// [N, trailing dims] with K the wave count of the first field that has one. Returns them by name, contiguous.
+TensorMap check_surfels(const std::vector<Tensor>& fields, int64_t& N, int64_t& K) {
+    TORCH_CHECK(int(fields.size()) == sz::NUM_SURFEL_FIELDS, "splatzoo render: ", sz::NUM_SURFEL_FIELDS,
+                " surfel fields expected (the Surfels field table), got ", fields.size(),
+                " (a build from another splatzoo version?)");
+    const Tensor& first = fields[0];
+    TORCH_CHECK(first.scalar_type() == at::kFloat || first.scalar_type() == at::kDouble,
+                "splatzoo render: float32 or float64 surfels expected, got ", first.scalar_type());
+    N = first.dim() >= 1 ? first.size(0) : -1;
+    TORCH_CHECK(N >= 0 && N < INT_MAX, "splatzoo render: bad number of surfels ", first.sizes());
+    K = -1;
+    TensorMap out;
+    for (int i = 0; i < sz::NUM_SURFEL_FIELDS; ++i) {
+        const sz::SurfelFieldInfo& info = sz::SURFEL_FIELD_INFO[i];
+        const Tensor& t = fields[i];
+        std::vector<int64_t> shape = {N};
+        for (int d = 0; d < info.rank; ++d) {
+            if (info.dims[d] == sz::SZ_K && K < 0 && t.dim() == info.rank + 1) K = t.size(d + 1);
+            shape.push_back(info.dims[d] == sz::SZ_K ? K : info.dims[d]);
+        }
+        TORCH_CHECK(t.sizes().vec() == shape, "splatzoo render: ", info.name, " must have shape ",
+                    at::IntArrayRef(shape), ", got ", t.sizes());
+        TORCH_CHECK(t.scalar_type() == first.scalar_type() && t.device() == first.device(), "splatzoo render: ",
+                    info.name, " must be ", first.scalar_type(), " on ", first.device(), " like ",
+                    sz::SURFEL_FIELD_INFO[0].name);
+        out[info.name] = t.contiguous();
+    }
+    if (K < 0) K = 0;
+    return out;
 }
 
-// render(settings, means, quats, scales, opacities, base_color, wave_vectors, wave_phases, wave_amplitudes,
-//        wave_counts, KR, Kt, eye, width, height, emulated) -> (outputs, state), two dicts of tensors:
+// render(settings, fields, wave_counts, KR, Kt, eye, width, height, emulated) -> (outputs, state), two dicts of
+// tensors; fields: the per-surfel tensors in the order of the field table (surfel_fields.h).
 // outputs: rgb [H,W,3], alpha, depth, median_depth [H,W], normal [H,W,3], distortion [H,W] (before the background);
 // state: what render_backward needs (the projection, the depth order of the visible surfels, the binning, the
 // per-pixel totals), every per-surfel tensor in input order.
-std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& means, const Tensor& quats,
-                                       const Tensor& scales, const Tensor& opac, const Tensor& base, const Tensor& wv,
-                                       const Tensor& wp, const Tensor& wa, const std::optional<Tensor>& wave_counts,
-                                       const Tensor& KR, const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H,
-                                       bool emulated) {
-    check_surfels(means, quats, scales, opac, base, wv, wp, wa);
+std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector<Tensor>& fields,
+                                       const std::optional<Tensor>& wave_counts, const Tensor& KR, const Tensor& Kt,
+                                       const Tensor& eye, int64_t W, int64_t H, bool emulated) {
+    int64_t N = 0, K = 0;
+    const TensorMap surfels = check_surfels(fields, N, K);
+    const Tensor& means = surfels.at("means");
     TORCH_CHECK(W >= 1 && H >= 1 && W <= (1 << 20) && H <= (1 << 20), "splatzoo render: bad image size ", W, "x", H);
     const Device dev = device_of(means, emulated);
     const at::OptionalDeviceGuard guard(at::device_of(means));
     void* stream = stream_for(dev);
     const int threads = at::get_num_threads();
-    const int64_t N = means.size(0), K = wv.size(1);
     auto f = means.options();
     auto i32 = f.dtype(at::kInt);
-    Tensor m = means.contiguous(), q = quats.contiguous(), sc = scales.contiguous(), op = opac.contiguous();
+    const Tensor &m = means, &q = surfels.at("quats"), &sc = surfels.at("scales"), &op = surfels.at("opacities");
 
     // 1. project every surfel: T, centre, depth, normal, exact screen box, visibility
     Tensor T = at::empty({N, 3, 3}, f), center = at::empty({N, 2}, f), depth = at::empty({N}, f);
@@ -166,9 +194,9 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& mea
     Tensor order = vis.index_select(0, std::get<1>(at::sort(depth.index_select(0, vis), true, 0, false)));
     const int64_t M = order.size(0);
     TensorMap state = {{"order", order.to(at::kInt)}, {"T", T}, {"centers", center}, {"center_depths", depth},
-                       {"normals", normal}, {"opacities", op}, {"base_color", base.contiguous()},
-                       {"wave_vectors", wv.contiguous()}, {"wave_phases", wp.contiguous()},
-                       {"wave_amplitudes", wa.contiguous()}, {"boxes", boxes}};
+                       {"normals", normal}, {"boxes", boxes}};
+    for (const sz::SurfelFieldInfo& info : sz::SURFEL_FIELD_INFO)
+        if (info.role != sz::Role::geometry) state[info.name] = surfels.at(info.name);
     if (wave_counts.has_value() && wave_counts->defined()) {
         const Tensor& wc = *wave_counts;
         TORCH_CHECK(wc.dim() == 1 && wc.size(0) == N && !wc.is_floating_point() && wc.device() == means.device(),
@@ -241,8 +269,8 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const Tensor& mea
 }
 
 // render_backward(settings, means, quats, scales, KR, Kt, eye, width, height, state, cotangents, emulated)
-// -> dict of v_ gradients by surfel field: means, quats, scales, opacities, base_color, wave_vectors, wave_phases,
-//    wave_amplitudes (missing cotangents count as zero; waves beyond a surfel's count get zero).
+// -> dict of v_ gradients by surfel field, every field of the table (missing cotangents count as zero; waves beyond
+//    a surfel's count get zero).
 TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Tensor& quats, const Tensor& scales,
                           const Tensor& KR, const Tensor& Kt, const Tensor& eye, int64_t W, int64_t H,
                           const TensorMap& state, const TensorMap& cotangents, bool emulated) {
@@ -251,7 +279,7 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
     void* stream = stream_for(dev);
     const int threads = at::get_num_threads();
     auto f = means.options();
-    const int64_t N = means.size(0), M = need(state, "order").size(0), K = need(state, "wave_vectors").size(1);
+    const int64_t N = means.size(0), M = need(state, "order").size(0);
     TensorMap v_out;  // cotangents of the six outputs, contiguous, zeros where not given
     for (const char* name : OUTPUTS) {
         std::vector<int64_t> shape = {H, W};
@@ -263,26 +291,31 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
         TORCH_CHECK(v_out[name].sizes().vec() == shape, "splatzoo render_backward: cotangent of ", name,
                     " must have shape ", at::IntArrayRef(shape), ", got ", v_out[name].sizes());
     }
-    // gradients of the per-surfel tensors, in input order; invisible surfels keep zero
+    // gradients of the per-surfel tensors, in input order; invisible surfels keep zero. The per-pair fields' are
+    // shaped like the saved fields themselves
     TensorMap v_c = {{"T", at::zeros({N, 3, 3}, f)}, {"centers", at::zeros({N, 2}, f)},
-                     {"center_depths", at::zeros({N}, f)}, {"normals", at::zeros({N, 3}, f)},
-                     {"opacities", at::zeros({N}, f)}, {"base_color", at::zeros({N, 3}, f)},
-                     {"wave_vectors", at::zeros({N, K, 2}, f)}, {"wave_phases", at::zeros({N, K}, f)},
-                     {"wave_amplitudes", at::zeros({N, K, 3}, f)}};
+                     {"center_depths", at::zeros({N}, f)}, {"normals", at::zeros({N, 3}, f)}};
+    for (const sz::SurfelFieldInfo& info : sz::SURFEL_FIELD_INFO)
+        if (info.role != sz::Role::geometry) v_c[info.name] = at::zeros_like(need(state, info.name));
+    const int64_t K = need(state, "wave_vectors").size(1);
     const int GW = sz::grad_width(int(K));
     if (M > 0) {
         AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_backward", [&] {
             using S = scalar_t;
             const auto s = surfel_args<S>(st, state, W, H);
             const auto fr = frame_args<S>(state, nullptr);
-            const sz::GradArgs<S> g{v_out["rgb"].data_ptr<S>(), v_out["alpha"].data_ptr<S>(),
-                                    v_out["depth"].data_ptr<S>(), v_out["median_depth"].data_ptr<S>(),
-                                    v_out["normal"].data_ptr<S>(), v_out["distortion"].data_ptr<S>(),
-                                    v_c["T"].data_ptr<S>(), v_c["centers"].data_ptr<S>(),
-                                    v_c["center_depths"].data_ptr<S>(), v_c["normals"].data_ptr<S>(),
-                                    v_c["opacities"].data_ptr<S>(), v_c["base_color"].data_ptr<S>(),
-                                    v_c["wave_vectors"].data_ptr<S>(), v_c["wave_phases"].data_ptr<S>(),
-                                    v_c["wave_amplitudes"].data_ptr<S>()};
+            sz::GradArgs<S> g{};
+            g.v_rgb = v_out["rgb"].data_ptr<S>();
+            g.v_alpha = v_out["alpha"].data_ptr<S>();
+            g.v_depth = v_out["depth"].data_ptr<S>();
+            g.v_median = v_out["median_depth"].data_ptr<S>();
+            g.v_normal = v_out["normal"].data_ptr<S>();
+            g.v_dist = v_out["distortion"].data_ptr<S>();
+            g.v_T = v_c["T"].data_ptr<S>();
+            g.v_center = v_c["centers"].data_ptr<S>();
+            g.v_depth_c = v_c["center_depths"].data_ptr<S>();
+            g.v_normal_c = v_c["normals"].data_ptr<S>();
+            set_field_gradients(g, v_c);
             if (dev == Device::Cpu) {
                 Tensor partials = at::empty({need(state, "tile_list").size(0), GW}, f);
                 sz::cpu_backward<S>(s, fr, g, need(state, "surfel_off").data_ptr<int64_t>(),
@@ -309,9 +342,10 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
         else
             SZ_KERNELS(dev, project_backward<S>, a, stream);
     });
-    return {{"means", v_means}, {"quats", v_quats}, {"scales", v_scales}, {"opacities", v_c["opacities"]},
-            {"base_color", v_c["base_color"]}, {"wave_vectors", v_c["wave_vectors"]},
-            {"wave_phases", v_c["wave_phases"]}, {"wave_amplitudes", v_c["wave_amplitudes"]}};
+    TensorMap v = {{"means", v_means}, {"quats", v_quats}, {"scales", v_scales}};
+    for (const sz::SurfelFieldInfo& info : sz::SURFEL_FIELD_INFO)
+        if (info.role != sz::Role::geometry) v[info.name] = v_c[info.name];
+    return v;
 }
 
 }  // namespace
@@ -334,10 +368,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.attr("SETTINGS_FIELDS") = py::make_tuple("near", "far", "alpha_max", "alpha_min", "t_min", "filter_inv_sq",
                                                "parallel_eps", "pixel_filter");
     m.def("render", &render, "Project, cull, sort, bin and rasterize surfels; returns (outputs, state)",
-          py::arg("settings"), py::arg("means"), py::arg("quats"), py::arg("scales"), py::arg("opacities"),
-          py::arg("base_color"), py::arg("wave_vectors"), py::arg("wave_phases"), py::arg("wave_amplitudes"),
-          py::arg("wave_counts"), py::arg("KR"), py::arg("Kt"), py::arg("eye"), py::arg("width"), py::arg("height"),
-          py::arg("emulated") = false);
+          py::arg("settings"), py::arg("fields"), py::arg("wave_counts"), py::arg("KR"), py::arg("Kt"), py::arg("eye"),
+          py::arg("width"), py::arg("height"), py::arg("emulated") = false);
+    // the field table this build was compiled with (surfel_fields.h), in the order render() takes them
+    py::list names;
+    for (const sz::SurfelFieldInfo& info : sz::SURFEL_FIELD_INFO) names.append(info.name);
+    m.attr("SURFEL_FIELDS") = py::tuple(names);
     m.def("render_backward", &render_backward, "Gradients of render's surfel inputs (dict by field name)",
           py::arg("settings"), py::arg("means"), py::arg("quats"), py::arg("scales"), py::arg("KR"), py::arg("Kt"),
           py::arg("eye"), py::arg("width"), py::arg("height"), py::arg("state"), py::arg("cotangents"),

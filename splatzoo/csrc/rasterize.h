@@ -13,6 +13,7 @@
 
 #include <cstdint>
 
+#include "surfel_fields.h"
 #include "surfel_math.h"
 
 namespace sz {
@@ -50,12 +51,12 @@ struct SurfelArgs {
     const S* center;   // [N,2] projected centre (pixels)
     const S* depth;    // [N] camera depth of the centre
     const S* normal;   // [N,3] world normal facing the camera
-    const S* opac;     // [N]
-    const S* base;     // [N,3]
-    const S* wv;       // [N,K,2]
-    const S* wp;       // [N,K]
-    const S* wa;       // [N,K,3]
     const S* boxes;    // [N,4] exact screen box (xmin, ymin, xmax, ymax)
+    // the fields read per pair, by their table names (surfel_fields.h): opacities [N], base_color [N,3],
+    // wave_vectors [N,K,2], wave_phases [N,K], wave_amplitudes [N,K,3]
+#define SZ_FIELD_POINTER(name) const S* name;
+    SZ_PAIR_FIELDS(SZ_FIELD_POINTER)
+#undef SZ_FIELD_POINTER
     // [N] waves in use per surfel (its first wcount[i] of K), or nullptr for all K. The tile loops run the wave
     // loops to k < wcount[i], so removed waves cost nothing; the row stride stays K.
     const int* wcount;
@@ -80,8 +81,12 @@ template <class S>
 struct GradArgs {
     // cotangents of the outputs [H,W(,3)] (contiguous, zeros where an output was unused)
     const S *v_rgb, *v_alpha, *v_depth, *v_median, *v_normal, *v_dist;
-    // gradients of the per-surfel inputs, same shapes as in SurfelArgs (written for visible surfels only)
-    S *v_T, *v_center, *v_depth_c, *v_normal_c, *v_opac, *v_base, *v_wv, *v_wp, *v_wa;
+    // gradients of the per-surfel inputs, same shapes as in SurfelArgs (written for visible surfels only): the
+    // projection's outputs, then v_<name> for every per-pair field
+    S *v_T, *v_center, *v_depth_c, *v_normal_c;
+#define SZ_FIELD_GRADIENT(name) S* v_##name;
+    SZ_PAIR_FIELDS(SZ_FIELD_GRADIENT)
+#undef SZ_FIELD_GRADIENT
 };
 
 inline int tiles_x(int W) { return (W + TILE - 1) / TILE; }
@@ -96,8 +101,8 @@ struct SurfelColour {
 };
 template <class S>
 SZ_HD SurfelColour<S> surfel_colour(const SurfelArgs<S>& s, int64_t i) {
-    return {s.normal + 3 * i, s.base + 3 * i, s.wv + 2 * s.K * i, s.wp + s.K * i, s.wa + 3 * s.K * i,
-            s.wcount ? s.wcount[i] : s.K};
+    return {s.normal + 3 * i, s.base_color + 3 * i, s.wave_vectors + 2 * s.K * i, s.wave_phases + s.K * i,
+            s.wave_amplitudes + 3 * s.K * i, s.wcount ? s.wcount[i] : s.K};
 }
 
 // A pixel's finished forward state -> the outputs and the state the backward reads, at pixel index o.
@@ -131,9 +136,10 @@ SZ_HD void load_pixel_bwd(PixelBwd<S>& p, const FrameArgs<S>& f, const GradArgs<
 template <class S, class R>
 SZ_HD void finalize_surfel(const SurfelArgs<S>& s, const GradArgs<S>& g, int64_t i, const R* row) {
     const int K = s.K;
-    finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, s.wv + 2 * K * i, s.wa + 3 * K * i, row, K, g.v_T + 9 * i,
-                   g.v_center + 2 * i, g.v_depth_c + i, g.v_normal_c + 3 * i, g.v_opac + i, g.v_base + 3 * i,
-                   g.v_wv + 2 * K * i, g.v_wp + K * i, g.v_wa + 3 * K * i);
+    finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, s.wave_vectors + 2 * K * i, s.wave_amplitudes + 3 * K * i,
+                   row, K, g.v_T + 9 * i, g.v_center + 2 * i, g.v_depth_c + i, g.v_normal_c + 3 * i,
+                   g.v_opacities + i, g.v_base_color + 3 * i, g.v_wave_vectors + 2 * K * i,
+                   g.v_wave_phases + K * i, g.v_wave_amplitudes + 3 * K * i);
 }
 
 // ---- CPU (OpenMP) ----

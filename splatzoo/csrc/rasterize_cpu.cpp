@@ -270,7 +270,7 @@ int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfe
 #pragma omp parallel for num_threads(threads) schedule(static)
     for (int r = 0; r < M; ++r) {
         const int64_t i = s.order[r];
-        prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i],
+        prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i],
                      *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
         box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     }

@@ -59,7 +59,7 @@ __global__ void prepare_kernel(SurfelArgs<S> s, S* geom, int* bounds, int* tile_
     const int r = blockIdx.x * blockDim.x + threadIdx.x;
     if (r >= s.M) return;
     const int64_t i = s.order[r];
-    prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opac[i], *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
+    prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i], *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
     box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     tile_count[r] = int(tile_range(bounds + 4 * i).count());
 }

@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 
 from ..errors import BackendUnavailableError
+from ..types import SURFEL_FIELDS as FIELD_TABLE
 from ..types import Camera, RenderOutput, Surfels
 from .common import RasterSettings, background_tensor
 
@@ -36,10 +37,9 @@ CSRC = Path(__file__).resolve().parents[1] / "csrc"  # shipped inside the packag
 # The CPU build also holds the CUDA kernels compiled for the host emulation (the cuda-emulated backend).
 CPU_SOURCES = ("ext.cpp", "rasterize_cpu.cpp", "rasterize_cuda_emulated.cpp")
 CUDA_SOURCES = CPU_SOURCES + ("rasterize_cuda.cu",)
-HEADERS = ("surfel_math.h", "rasterize.h", "cuda_emulation.h")
+HEADERS = ("surfel_math.h", "rasterize.h", "cuda_emulation.h", "surfel_fields.h")
 OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
-SURFEL_FIELDS = ("means", "quats", "scales", "opacities", "base_color", "wave_vectors", "wave_phases",
-                 "wave_amplitudes")
+SURFEL_FIELDS = tuple(f.name for f in FIELD_TABLE)  # the order the extension takes them in
 
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
@@ -132,11 +132,23 @@ def load(kind: str = "cpu"):
         if kind in _failures:
             raise _failures[kind]
         try:
-            _modules[kind] = _build(kind)
-            return _modules[kind]
+            module = _build(kind)
+            _check_fields(module)
+            _modules[kind] = module
+            return module
         except BackendUnavailableError as e:
             _failures[kind] = e
             raise
+
+
+def _check_fields(module) -> None:
+    """The build's field table (csrc/surfel_fields.h) must be the Surfels declaration's."""
+    built = tuple(getattr(module, "SURFEL_FIELDS", ()))
+    if built != SURFEL_FIELDS:
+        raise BackendUnavailableError(
+            f"the native rasterizer was compiled for the surfel fields {', '.join(built) or '(none)'}, but "
+            f"splatzoo.types.Surfels declares {', '.join(SURFEL_FIELDS)}: csrc/surfel_fields.h is out of date; "
+            "regenerate it with python -m splatzoo.rasterizers.fields")
 
 
 def _build(kind: str):
@@ -233,8 +245,9 @@ class _RenderFn(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, call: _Call, *surfel_tensors):
-        means, quats, scales = surfel_tensors[:3]
-        out, state = call.C.render(call.settings, *surfel_tensors, call.wave_counts, call.KR, call.Kt, call.eye,
+        fields = dict(zip(SURFEL_FIELDS, surfel_tensors))
+        means, quats, scales = fields["means"], fields["quats"], fields["scales"]
+        out, state = call.C.render(call.settings, list(surfel_tensors), call.wave_counts, call.KR, call.Kt, call.eye,
                                    call.width, call.height, call.emulated)
         ctx.call = call
         ctx.state_names = tuple(state)

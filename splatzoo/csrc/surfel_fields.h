@@ -1,0 +1,36 @@
+// Generated from the Surfels field table (splatzoo/types.py) by `python -m splatzoo.rasterizers.fields`: do
+// not edit. Every per-surfel field, in table order (the order render() takes them in); the bindings (ext.cpp) derive
+// their checks, arguments and gradient buffers from it, and the tile loops' argument structs (rasterize.h) their
+// per-pair pointers.
+#pragma once
+
+namespace sz {
+
+enum class Role { geometry, opacity, appearance };
+constexpr int SZ_K = -1;  // a dimension equal to the batch's wave count K
+
+struct SurfelFieldInfo {
+    const char* name;
+    Role role;
+    int rank;  // trailing dimensions after N
+    int dims[3];  // SZ_K: K
+};
+
+constexpr int NUM_SURFEL_FIELDS = 8;
+constexpr SurfelFieldInfo SURFEL_FIELD_INFO[NUM_SURFEL_FIELDS] = {
+    {"means", Role::geometry, 1, {3, 0, 0}},  // centre in world space
+    {"quats", Role::geometry, 1, {4, 0, 0}},  // rotation (w, x, y, z), need not be normalised
+    {"scales", Role::geometry, 1, {2, 0, 0}},  // linear sigma along u, v
+    {"opacities", Role::opacity, 0, {0, 0, 0}},  // peak opacity in [0, 1]
+    {"base_color", Role::appearance, 1, {3, 0, 0}},  // view-evaluated colour c0
+    {"wave_vectors", Role::appearance, 2, {SZ_K, 2, 0}},  // k_k, radians per sigma
+    {"wave_phases", Role::appearance, 1, {SZ_K, 0, 0}},  // phi_k, radians
+    {"wave_amplitudes", Role::appearance, 2, {SZ_K, 3, 0}},  // a_k, colour per wave
+};
+
+}  // namespace sz
+
+// X(name) for every field, in table order
+#define SZ_SURFEL_FIELDS(X) X(means) X(quats) X(scales) X(opacities) X(base_color) X(wave_vectors) X(wave_phases) X(wave_amplitudes)
+// X(name) for the fields the tile loops read per (surfel, pixel) pair (every role but geometry)
+#define SZ_PAIR_FIELDS(X) X(opacities) X(base_color) X(wave_vectors) X(wave_phases) X(wave_amplitudes)

@@ -1,0 +1,87 @@
+"""The native rasterizer's view of the Surfels field table: csrc/surfel_fields.h, generated from the declarations in
+splatzoo/types.py so that a per-surfel field is declared once.
+
+`python -m splatzoo.rasterizers.fields` rewrites the header after a field was added or changed (tests check that the
+shipped header is current, and the native backend refuses a build whose fields differ from the table).
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..types import SURFEL_FIELDS, SURFEL_ROLES
+
+HEADER = Path(__file__).resolve().parents[1] / "csrc" / "surfel_fields.h"
+MAX_RANK = 3  # trailing dimensions a field may have
+
+
+def pair_fields() -> list[str]:
+    """The fields the tile loops read for every (surfel, pixel) pair: every role but geometry."""
+    return [f.name for f in SURFEL_FIELDS if f.role != "geometry"]
+
+
+def header_text() -> str:
+    """csrc/surfel_fields.h for the current table."""
+    rows = []
+    for f in SURFEL_FIELDS:
+        if len(f.dims) > MAX_RANK:
+            raise ValueError(f"Surfels.{f.name} has {len(f.dims)} trailing dimensions; at most {MAX_RANK}")
+        dims = [("SZ_K" if d == "K" else str(int(d))) for d in f.dims] + ["0"] * (MAX_RANK - len(f.dims))
+        rows.append(f'    {{"{f.name}", Role::{f.role}, {len(f.dims)}, {{{", ".join(dims)}}}}},  // {f.doc}')
+    names = " ".join(f"X({f.name})" for f in SURFEL_FIELDS)
+    pair = " ".join(f"X({n})" for n in pair_fields())
+    roles = ", ".join(SURFEL_ROLES)
+    return f"""// Generated from the Surfels field table (splatzoo/types.py) by `python -m splatzoo.rasterizers.fields`: do
+// not edit. Every per-surfel field, in table order (the order render() takes them in); the bindings (ext.cpp) derive
+// their checks, arguments and gradient buffers from it, and the tile loops' argument structs (rasterize.h) their
+// per-pair pointers.
+#pragma once
+
+namespace sz {{
+
+enum class Role {{ {roles} }};
+constexpr int SZ_K = -1;  // a dimension equal to the batch's wave count K
+
+struct SurfelFieldInfo {{
+    const char* name;
+    Role role;
+    int rank;  // trailing dimensions after N
+    int dims[{MAX_RANK}];  // SZ_K: K
+}};
+
+constexpr int NUM_SURFEL_FIELDS = {len(SURFEL_FIELDS)};
+constexpr SurfelFieldInfo SURFEL_FIELD_INFO[NUM_SURFEL_FIELDS] = {{
+{chr(10).join(rows)}
+}};
+
+}}  // namespace sz
+
+// X(name) for every field, in table order
+#define SZ_SURFEL_FIELDS(X) {names}
+// X(name) for the fields the tile loops read per (surfel, pixel) pair (every role but geometry)
+#define SZ_PAIR_FIELDS(X) {pair}
+"""
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    text = header_text()
+    if argv == ["--check"]:
+        current = HEADER.read_text() if HEADER.is_file() else ""
+        if current != text:
+            print(f"{HEADER} is out of date with the Surfels field table; run python -m splatzoo.rasterizers.fields",
+                  file=sys.stderr)
+            return 1
+        return 0
+    if argv:
+        print("usage: python -m splatzoo.rasterizers.fields [--check]", file=sys.stderr)
+        return 2
+    tmp = HEADER.with_suffix(".h.tmp")
+    tmp.write_text(text)
+    tmp.replace(HEADER)
+    print(f"wrote {HEADER}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
