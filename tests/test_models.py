@@ -206,16 +206,18 @@ def test_files_from_before_color_param_mean_the_paper_model():
     assert torch.equal(back.surfels(CAM).base_color, paper.surfels(CAM).base_color)
 
 
-def test_readme_python_example_runs(tmp_path, monkeypatch):
-    """The README's Python example, as written."""
-    import re
-    from pathlib import Path
+def test_nearest_neighbour_distance_matches_brute_force():
+    """The KD-tree initial scales equal the all-pairs answer, duplicates (distance 0) included."""
+    from splatzoo.models.base import nearest_neighbour_distance
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    code = re.search(r"```python\n(.*?)```", readme, re.S).group(1)
-    assert "model.render(" in code
-    monkeypatch.chdir(tmp_path)
-    scope: dict = {}
-    exec(compile(code, "README.md", "exec"), scope)
-    assert scope["picture"].shape == (128, 128, 3) and (tmp_path / "model.pt").is_file()
-    assert scope["out"].rgb.shape == (128, 128, 3)
+    g = torch.Generator().manual_seed(0)
+    pts = torch.randn(500, 3, generator=g, dtype=torch.float64)
+    pts[10] = pts[11]  # a duplicate
+    d = torch.cdist(pts, pts)
+    d.fill_diagonal_(float("inf"))
+    want = d.topk(3, largest=False).values.mean(1)
+    got = nearest_neighbour_distance(pts)
+    assert got.dtype == pts.dtype and torch.allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert torch.equal(nearest_neighbour_distance(pts[:1]), torch.ones(1, dtype=torch.float64))
+    two = nearest_neighbour_distance(torch.tensor([[0.0, 0, 0], [3.0, 4, 0]]))  # k shrinks to N - 1
+    assert torch.allclose(two, torch.tensor([5.0, 5.0]))

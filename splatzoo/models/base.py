@@ -19,18 +19,18 @@ def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
     return torch.log(x / (1 - x))
 
 
-def nearest_neighbour_distance(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
-    """Mean distance from each point to its k nearest other points [N] (chunked, O(N^2) but small memory)."""
+def nearest_neighbour_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """Mean distance from each point to its k nearest other points [N] (a KD-tree: O(N log N), seconds at 1M)."""
+    from scipy.spatial import cKDTree
+
     n = points.shape[0]
     if n < 2:
         return points.new_ones(n)
     k = min(k, n - 1)
-    out = []
-    for i in range(0, n, chunk):
-        d = torch.cdist(points[i:i + chunk], points)
-        d[torch.arange(d.shape[0]), torch.arange(i, i + d.shape[0])] = float("inf")
-        out.append(d.topk(k, largest=False).values.mean(1))
-    return torch.cat(out)
+    pts = points.detach().double().cpu().numpy()
+    # k + 1 neighbours, the first being the point itself (or a duplicate of it: distance 0 either way)
+    dist, _ = cKDTree(pts).query(pts, k=k + 1)
+    return torch.from_numpy(dist[:, 1:].mean(1)).to(points)
 
 
 class SplatModel(nn.Module):
