@@ -78,6 +78,36 @@ def test_readme_python_snippet_runs_as_written(tmp_path, monkeypatch):
     out = scope["out"]
     assert out.alpha.max() > 0.5 and out.rgb.max() > 0  # it rendered something: the sphere covers the view centre
     assert (tmp_path / "model.pt").is_file()
+    assert "model.render(" in readme and scope["picture"].shape == (128, 128, 3)  # the one render call
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A finished 5-iteration run on a small synthetic scene: (data folder, run folder)."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.runs import train
+    from splatzoo.training.trainer import TrainConfig
+
+    root = tmp_path_factory.mktemp("tiny")
+    data = make_synthetic_scene("plain", root / "data", views=6, width=32, height=32)
+    train(data, "2dgs", {}, TrainConfig(iterations=5, backend="cpu", num_primitives=100, densify=False), root / "run",
+          progress=False, evaluate_at_end=False)
+    return data, root / "run"
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="the cuda backend runs here")
+@pytest.mark.parametrize("command", ["train", "eval", "render", "extract-mesh", "view", "compare"])
+def test_an_unavailable_backend_is_named_before_anything_runs(command, tiny_run, tmp_path):
+    """--backend cuda where torch has no CUDA (or no GPU is visible): one line saying why, exit 2, no traceback."""
+    data, run = tiny_run
+    args = {"train": ["train", str(data), "--out", str(tmp_path / "run")],
+            "compare": ["compare", "gabor", "--quick", "--data", str(data), "--out", str(tmp_path / "cmp")]}.get(
+        command, [command, str(run)])
+    out = subprocess.run([sys.executable, "-m", "splatzoo.cli", *args, "--backend", "cuda"], capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("error:") and "CUDA" in last and "cuda rasterizer" in last
 
 
 def test_sfm_options_reach_the_mapper(tmp_path):

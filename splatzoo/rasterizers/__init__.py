@@ -112,6 +112,8 @@ def select_backend(backend: str | Backend = "auto", device=None) -> Backend:
     kind = None if device is None else torch.device(device).type
     if backend != "auto":
         b = BACKENDS.get(backend)
+        if kind is None and b.device is not None:
+            b.check()  # the program is about to put its model on b's device: say now if b cannot run here, and why
         if kind is not None and b.device not in (None, kind):
             raise BackendUnavailableError(f"the {b.name} backend renders surfels on the {b.device} device, but these "
                                           f"are on {kind}; move them with surfels.to('{b.device}') or use another "
