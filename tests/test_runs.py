@@ -292,6 +292,52 @@ def test_checkpoints_by_time_and_stale_temp_files(tiny_data, tmp_path, monkeypat
 
 # --- damaged files and bad values ----------------------------------------------------------------------------------
 
+def _crafted_states(state: dict) -> dict:
+    """Checkpoints whose training state is inconsistent, by what their error must name."""
+    opt = state["optimizer"]
+    first = next(iter(opt["state"]))
+    wrong_shape = {**opt, "state": {**opt["state"], first: {**opt["state"][first],
+                                                            "exp_avg": torch.zeros(3, 1)}}}
+    nan_moment = {**opt, "state": {**opt["state"], first: {**opt["state"][first],
+                                                           "exp_avg_sq": opt["state"][first]["exp_avg_sq"] * float("nan")}}}
+    n = state["densify"]["count"].shape[0]
+    return {
+        "iteration 13 is outside": {**state, "iteration": 13},  # past the end: it would train nothing, finish
+        "iteration -1 is outside": {**state, "iteration": -1},
+        "iteration is 6.5": {**state, "iteration": 6.5},
+        "view_order names view 10": {**state, "view_order": [10]},
+        "view_order names view -1": {**state, "view_order": [-1]},
+        "view_order must list at most": {**state, "view_order": list(range(9)) * 200},
+        "names a training view twice": {**state, "view_order": [1, 1]},
+        "recent_error is 'x'": {**state, "recent_error": "x"},
+        "train_seconds is nan": {**state, "train_seconds": float("nan")},
+        "no Adam state": {**state, "optimizer": {**opt, "state": {}}},
+        "exp_avg of means has shape": {**state, "optimizer": wrong_shape},
+        "exp_avg_sq of means holds non-finite": {**state, "optimizer": nan_moment},
+        "statistic count has shape": {**state, "densify": {**state["densify"], "count": torch.zeros(n + 1)}},
+        "statistic grad_sum must hold": {**state, "densify": {**state["densify"],
+                                                              "grad_sum": torch.full((n,), -1.0)}},
+    }
+
+
+def test_an_inconsistent_training_state_is_refused_before_training(tiny_data, tmp_path):
+    """Each crafted checkpoint is a named error that keeps the checkpoint and writes no model."""
+    run = tmp_path / "run"
+    quick_train(tiny_data, run, stop_after=6)
+    good = (run / "checkpoint.pt").read_bytes()
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    for problem, crafted in _crafted_states(state).items():
+        torch.save(crafted, run / "checkpoint.pt")
+        kept = (run / "checkpoint.pt").read_bytes()
+        with pytest.raises(SplatzooError, match="consistent training state") as e:
+            quick_train(tiny_data, run, resume=True)
+        assert problem in str(e.value), (problem, str(e.value))
+        assert (run / "checkpoint.pt").read_bytes() == kept and not (run / "model.pt").exists()
+    (run / "checkpoint.pt").write_bytes(good)
+    quick_train(tiny_data, run, resume=True)  # the good one still resumes
+    assert (run / "model.pt").exists()
+
+
 def test_damaged_files_give_clear_errors(tiny_data, tmp_path):
     run = tmp_path / "run"
     quick_train(tiny_data, run, stop_after=6)

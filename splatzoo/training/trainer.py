@@ -155,6 +155,74 @@ class ViewLoss(NamedTuple):
     scale: float            # 1, or the smaller scale --random-downscale drew
 
 
+# ---- a checkpoint's training state, checked before anything trains (a ValueError names what is wrong) --------------
+def _number(value, what: str, *, integer: bool = False) -> float:
+    ok = isinstance(value, int) if integer else isinstance(value, (int, float))
+    if not ok or isinstance(value, bool) or not math.isfinite(value):
+        raise ValueError(f"{what} is {value!r}, not a finite {'integer' if integer else 'number'}")
+    return value
+
+
+def check_progress(state: dict, cfg: "TrainConfig", num_views: int) -> None:
+    """The loop's position: iteration in [0, iterations], elapsed time, the remaining view order (distinct training
+    view indices) and the recent error average."""
+    it = _number(state["iteration"], "iteration", integer=True)
+    if not 0 <= it <= cfg.iterations:
+        raise ValueError(f"iteration {it} is outside the run's 0..{cfg.iterations}")
+    if _number(state["train_seconds"], "train_seconds") < 0:
+        raise ValueError(f"train_seconds is negative ({state['train_seconds']})")
+    order = state["view_order"]
+    if not isinstance(order, (list, tuple)) or len(order) > num_views:
+        raise ValueError(f"view_order must list at most the {num_views} training views, got "
+                         f"{type(order).__name__} of {len(order) if isinstance(order, (list, tuple)) else '?'}")
+    for i in order:
+        if _number(i, "a view_order entry", integer=True) < 0 or i >= num_views:
+            raise ValueError(f"view_order names view {i}, but the dataset has {num_views} training views")
+    if len(set(order)) != len(order):
+        raise ValueError("view_order names a training view twice")
+    if state.get("recent_error") is not None and _number(state["recent_error"], "recent_error") < 0:
+        raise ValueError(f"recent_error is negative ({state['recent_error']})")
+
+
+def check_optimizer_state(optimizer: torch.optim.Optimizer, iteration: int) -> None:
+    """Adam's moments, once loaded: the shape of their parameter, finite; present for every parameter once training
+    has started (missing ones would silently restart from zero)."""
+    for group in optimizer.param_groups:
+        for j, p in enumerate(group["params"]):
+            name = f"{group.get('name', 'group')}[{j}]" if len(group["params"]) > 1 else group.get("name", "?")
+            st = optimizer.state.get(p)
+            if not st:
+                if iteration > 0 and p.numel() > 0:
+                    raise ValueError(f"the optimizer has no Adam state for parameter {name} after {iteration} "
+                                     "iterations")
+                continue
+            for key in ("exp_avg", "exp_avg_sq"):
+                m = st.get(key)
+                if not isinstance(m, torch.Tensor) or m.shape != p.shape:
+                    raise ValueError(f"Adam's {key} of {name} has shape {list(getattr(m, 'shape', []))}, its "
+                                     f"parameter {list(p.shape)}")
+                if not bool(torch.isfinite(m).all()):
+                    raise ValueError(f"Adam's {key} of {name} holds non-finite values")
+            step = st.get("step")
+            if step is not None and not (torch.isfinite(torch.as_tensor(step, dtype=torch.float64)).all()
+                                         and float(step) >= 0):
+                raise ValueError(f"Adam's step of {name} is {step!r}")
+
+
+def check_densify_state(stats: "DensifyStats", num_primitives: int | None) -> None:
+    """The densification statistics: one finite non-negative value per primitive (num_primitives; None: any one
+    length, for a strategy that does not read them)."""
+    items = stats.state_dict().items()
+    want = num_primitives
+    for key, t in items:
+        if not isinstance(t, torch.Tensor) or t.dim() != 1 or (want is not None and t.shape[0] != want):
+            raise ValueError(f"densification statistic {key} has shape {list(getattr(t, 'shape', []))}, "
+                             f"not [{want if want is not None else 'N'}] (one value per primitive)")
+        want = t.shape[0]  # the statistics agree with each other
+        if not t.is_floating_point() or not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+            raise ValueError(f"densification statistic {key} must hold finite non-negative values")
+
+
 class Trainer:
     """The state of one training run (model, optimizer, densification statistics, random generator, position in
     the view order) and one `step()` of the loop. Files, signals and progress belong to the runs layer
@@ -177,10 +245,14 @@ class Trainer:
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.iteration, self.train_seconds, self.view_order = 0, 0.0, []
         if state is not None:
+            check_progress(state, cfg, len(scene.train))
             # checkpoints from before the error average start it again (it settles within ~100 steps)
-            self.net.recent_error = state.get("recent_error")
+            self.net.recent_error = None if state.get("recent_error") is None else float(state["recent_error"])
             self.optimizer.load_state_dict(state["optimizer"])
+            check_optimizer_state(self.optimizer, int(state["iteration"]))
             self.stats.load_state_dict(state["densify"])
+            # MCMC never reads them (nor resizes them when it grows the model)
+            check_densify_state(self.stats, None if cfg.strategy == "mcmc" else self.net.num_primitives)
             if self.comm.rank != 0:  # the checkpoint holds the sums over all ranks; rank 0 carries them on
                 self.stats.grad_sum.zero_()
                 self.stats.count.zero_()
