@@ -328,7 +328,7 @@ def render_command(
     run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`"),
     split: str = typer.Option("test", "--split", help="test or train views"),
     video: bool = typer.Option(False, "--video", help="also write an orbit video (renders/orbit.webm, VP9: plays in browsers)"),
-    frames: int = typer.Option(60, "--frames", help="frames of the orbit video"),
+    frames: int = typer.Option(60, "--frames", min=1, max=100000, help="frames of the orbit video"),
     backend: str = _BACKEND,
 ) -> None:
     """Render a trained run's views to PNG (and an orbit video)."""

@@ -257,6 +257,10 @@ class Run:
         return out
 
     def require_run(self) -> None:
+        if self.path.is_file():
+            what = "a model file" if self.path.suffix in (".pt", ".ply") else "a file"
+            raise SplatzooError(f"{self.path} is {what}, not a run folder; pass the --out folder of `splatzoo train`"
+                                " (a model file loads in Python with splatzoo.load_model or splatzoo.load_ply)")
         if not self.path.is_dir():
             raise SplatzooError(f"run directory {self.path} does not exist; pass the --out folder of `splatzoo train`")
         if not self.config_path.exists():

@@ -176,3 +176,15 @@ def test_a_signal_during_the_final_evaluation_exits_with_its_own_code(monkeypatc
         cli.main()
     assert e.value.code == 143
     assert "evaluation was interrupted" in capsys.readouterr().err
+
+
+def test_bad_render_and_eval_arguments_are_named(tiny_run, tmp_path):
+    """`render --frames 0` is a usage error, not an IndexError; a model file given for a run folder says so."""
+    _, run = tiny_run
+    r = runner.invoke(app, ["render", str(run), "--video", "--frames", "0"])
+    assert r.exit_code == 2 and "--frames" in r.output, r.output
+    model = tmp_path / "model.ply"
+    model.write_bytes(b"ply\n")
+    out = subprocess.run([sys.executable, "-m", "splatzoo.cli", "eval", str(model)], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 2 and "is a model file, not a run folder" in out.stderr and "load_ply" in out.stderr
