@@ -2,8 +2,10 @@
 transforms files each give a DataError that says which file, what is wrong and what to do."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -229,3 +231,68 @@ def test_valid_blender_variants_still_load(tmp_path):
     scene = load_scene(root, test_every=0)
     assert len(scene.train) == 2
     assert math.isclose(float(scene.train[0].camera.K[0, 0]), 0.5 * 16 / math.tan(0.35), rel_tol=1e-5)
+
+
+# --- cameras no photo can have ----------------------------------------------------------------------------------
+
+def _colmap_with(tmp_path, edit) -> Path:
+    """A 3-view COLMAP dataset whose cameras (a list of splatzoo Cameras) went through `edit` before writing."""
+    root, cams = _colmap_dataset(tmp_path / "d")
+    names = [Path(c.name).with_suffix(".png").name for c in cams]
+    cams, names = edit(list(cams), names)
+    write_model(root / "sparse" / "0", cams, names, np.zeros((4, 3)), np.full((4, 3), 0.5))
+    return root
+
+
+def _with_K(cam, **entries):
+    K = cam.K.clone()
+    for (i, j), value in ((IJ[k], v) for k, v in entries.items()):
+        K[i, j] = value
+    return dataclasses.replace(cam, K=K)
+
+
+IJ = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
+
+
+@pytest.mark.parametrize("entries, message", [
+    ({"fx": 1e-300}, "focal fx = 0 px"),  # rounded to 0 on the way
+    ({"fy": 1e-3}, "focal fy = 0.001"),
+    ({"fx": 1e12}, "focal fx = 1e"),
+    ({"cx": 1e9}, "principal point at (1e"),
+    ({"cy": -500.0}, "principal point"),
+])
+def test_colmap_intrinsics_no_photo_has_are_named(tmp_path, entries, message):
+    root = _colmap_with(tmp_path, lambda cams, names: ([_with_K(cams[0], **entries)] + cams[1:], names))
+    with pytest.raises(DataError, match=re.escape(message)):
+        load_scene(root)
+
+
+def test_duplicate_names_and_broken_rotations_are_named(tmp_path):
+    root = _colmap_with(tmp_path, lambda cams, names: (cams, [names[0], names[0], names[2]]))
+    with pytest.raises(DataError, match="two views are named"):
+        load_scene(root)
+    root = _blender(tmp_path / "b", n=2)
+    _edit(root, _matrix(lambda m: (m @ np.diag([1.0, 2, 1, 1])).tolist()))  # a column of length 2: a shear
+    with pytest.raises(DataError, match="not a rotation"):
+        load_scene(root)
+    _edit(root, _frame1("transform_matrix", (np.eye(4) * np.diag([1.0, 1, 1, 1])).tolist()))
+    load_scene(root)  # an identity pose is fine
+
+
+def test_blender_subnormal_focal_is_named(tmp_path):
+    root = _blender(tmp_path / "b", n=2)
+    _edit(root, lambda meta: meta.update(fl_x=5e-324, fl_y=5e-324, w=16, h=12))
+    with pytest.raises(DataError, match="focal fx = 0 px"):  # a float64 > 0 that float32 makes 0
+        load_scene(root)
+
+
+def test_colmap_camera_sizes_that_do_not_fit_the_images(tmp_path):
+    big = lambda cams, names: ([dataclasses.replace(c, width=20000, height=15000) for c in cams], names)  # noqa: E731
+    with pytest.raises(DataError, match="more than 64x smaller"):
+        load_scene(_colmap_with(tmp_path / "a", big))
+    root = _colmap_with(tmp_path / "b", lambda cams, names: (cams, names))
+    rec = pycolmap.Reconstruction(root / "sparse" / "0")
+    rec.cameras[1].width = 0
+    rec.write_binary(root / "sparse" / "0")
+    with pytest.raises(DataError, match="is 0x48; a camera needs a size of at least 1x1"):
+        load_scene(root)

@@ -32,6 +32,9 @@ MODEL_FILES = ("cameras", "images", "points3D")
 UNDISTORTED_DIR = "undistorted"
 
 
+MAX_DOWNSCALE = 64  # images may be a uniformly downscaled copy of those a COLMAP camera describes, up to this factor
+
+
 def find_sparse_dir(root: Path) -> Path | None:
     """sparse/0/, sparse/ or the folder itself, whichever holds cameras.bin or cameras.txt."""
     for cand in (root / "sparse" / "0", root / "sparse", root):
@@ -246,6 +249,13 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
                             f"{cid} is {cam.width}x{cam.height}. Resize them all to one size or re-run SfM "
                             "with one camera per image size")
         (w, h), = found
+        if cam.width < 1 or cam.height < 1:
+            raise DataError(f"COLMAP camera {cid} in {sparse} is {cam.width}x{cam.height}; a camera needs a size of at "
+                            "least 1x1 (a damaged cameras file?)")
+        if max(cam.width / w, cam.height / h) > MAX_DOWNSCALE:
+            raise DataError(f"COLMAP camera {cid} is {cam.width}x{cam.height} but its images are {w}x{h}: more than "
+                            f"{MAX_DOWNSCALE}x smaller, too far for a downscaled copy of the photos it was made from; "
+                            "use those photos, or fix the camera's size")
         if (w, h) != (cam.width, cam.height):
             sx, sy = w / cam.width, h / cam.height
             # A uniformly downscaled copy of the images is fine (intrinsics scale with it); anything else is not.

@@ -13,7 +13,7 @@ from pathlib import Path
 from ..errors import DataError
 from ..registry import Registry
 from . import blender, colmap
-from .scene import DatasetFormat, Scene, image_size
+from .scene import DatasetFormat, Scene, check_cameras, image_size
 
 FORMATS: Registry[DatasetFormat] = Registry("dataset format")
 
@@ -87,6 +87,7 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
                                      test_every=test_every,
                                      background=option if isinstance(option, tuple) else (0.0, 0.0, 0.0),
                                      masks=masks)
+    check_cameras(scene.views, path)
     if capped and scene.views:
         view = scene.views[0]
         source_width = (view.pixels.shape[1] if view.pixels is not None else

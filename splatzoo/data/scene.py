@@ -324,6 +324,48 @@ class DatasetFormat:
 
 # --- helpers shared by the readers --------------------------------------------------------------------------
 
+# The widest field of view a perspective camera may have (a focal below this is a broken calibration, e.g. 0 or a
+# subnormal number that float32 rounds to 0), the narrowest (degrees), and how far outside the image the principal
+# point may lie, in image sizes.
+MAX_FOV_DEG = 179.0
+MIN_FOV_DEG = 1e-3
+PRINCIPAL_POINT_RANGE = 1.0
+
+
+def check_cameras(views: list, where) -> None:
+    """Every view's camera is one a photo can have: a focal that gives a field of view between MIN_FOV_DEG and
+    MAX_FOV_DEG, a principal point within PRINCIPAL_POINT_RANGE image sizes of the image, a rotation (orthonormal,
+    determinant +1; a zero quaternion is not one), and a name no other view has. Raises DataError naming the view."""
+    import math
+
+    seen: dict[str, int] = {}
+    for v in views:
+        cam = v.camera
+        name = v.name or cam.name
+        if name in seen:
+            raise DataError(f"{where}: two views are named {name!r}; image names must be unique (a duplicated "
+                            "frame in the camera file?)")
+        seen[name] = 1
+        K = cam.K.double()
+        for axis, f, size in (("x", float(K[0, 0]), cam.width), ("y", float(K[1, 1]), cam.height)):
+            lo = 0.5 * size / math.tan(math.radians(MAX_FOV_DEG) / 2)
+            hi = 0.5 * size / math.tan(math.radians(MIN_FOV_DEG) / 2)
+            if not lo <= f <= hi:
+                raise DataError(f"{where}: view {name!r} has focal f{axis} = {f:g} px for a {cam.width}x{cam.height} "
+                                f"image; a perspective camera needs {lo:.3g}..{hi:.3g} px (field of view "
+                                f"{MIN_FOV_DEG:g}..{MAX_FOV_DEG:g} degrees). Check the intrinsics (units: pixels)")
+        cx, cy = float(K[0, 2]), float(K[1, 2])
+        r = PRINCIPAL_POINT_RANGE
+        if not (-r * cam.width <= cx <= (1 + r) * cam.width and -r * cam.height <= cy <= (1 + r) * cam.height):
+            raise DataError(f"{where}: view {name!r} has its principal point at ({cx:g}, {cy:g}), far outside its "
+                            f"{cam.width}x{cam.height} image; check cx, cy (pixels)")
+        R = cam.R.double()
+        err = float((R @ R.T - torch.eye(3, dtype=torch.float64)).abs().max())
+        if not (err < 1e-3 and float(torch.linalg.det(R)) > 0):
+            raise DataError(f"{where}: view {name!r} has a camera orientation that is not a rotation (|R Rt - I| = "
+                            f"{err:.3g}); a zero or broken quaternion or matrix in the pose file")
+
+
 def camera_extent(cameras: list[Camera], points: torch.Tensor | None = None) -> float:
     """1.1 x the radius of the camera centres around their mean (the 2DGS/3DGS convention).
 
