@@ -549,3 +549,18 @@ def test_the_build_cache_is_keyed_by_the_compiler(monkeypatch):
     a = native._build_name("cpu")
     monkeypatch.setattr(native, "_compiler_id", lambda kind: "c++ (another compiler) 99.1")
     assert native._build_name("cpu") != a
+
+
+def test_a_camera_too_large_to_index_is_refused_not_a_crash(any_backend):
+    """A 2^20 x 2^20 camera (a hostile viewer client's, say) overflowed the 32-bit tile count in the binning and
+    crashed the process; every backend refuses it by name, before allocating."""
+    s, cam = random_scene(50, 16, 16, 2, seed=3)
+    far = Camera.look_at((0.0, 0.0, -1e6), (0.0, 0.0, 0.0), width=1 << 20, height=1 << 20, dtype=torch.float32)
+    with pytest.raises(ShapeError, match="pixels per image"):
+        rasterize(s, far, backend=any_backend)
+    C = native.load("cpu")  # the bindings check too, for callers below rasterize()
+    cam64 = far.to("cpu", torch.float64)
+    KR, Kt, eye = (cam64.K @ cam64.R).float(), (cam64.K @ cam64.t).float(), cam64.center.float()
+    with pytest.raises(RuntimeError, match="2\\^31 - 1 pixels"):
+        C.render(native.settings_struct(C, SETTINGS), list(s.tensors().values()), None, KR, Kt, eye, 1 << 20, 1 << 20,
+                 False)

@@ -165,7 +165,8 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector
     int64_t N = 0, K = 0;
     const TensorMap surfels = check_surfels(fields, N, K);
     const Tensor& means = surfels.at("means");
-    TORCH_CHECK(W >= 1 && H >= 1 && W <= (1 << 20) && H <= (1 << 20), "splatzoo render: bad image size ", W, "x", H);
+    TORCH_CHECK(W >= 1 && H >= 1 && W <= (1 << 20) && H <= (1 << 20) && W * H <= int64_t(INT_MAX),
+                "splatzoo render: bad image size ", W, "x", H, " (at most 2^20 a side and 2^31 - 1 pixels)");
     const Device dev = device_of(means, emulated);
     const at::OptionalDeviceGuard guard(at::device_of(means));
     void* stream = stream_for(dev);

@@ -16,7 +16,7 @@ from typing import Callable
 
 import torch
 
-from ..errors import BackendUnavailableError
+from ..errors import BackendUnavailableError, ShapeError
 from ..registry import Registry
 from ..types import Camera, RenderOutput, Surfels
 from .common import SETTINGS, RasterSettings
@@ -150,6 +150,17 @@ def available_backends(device=None) -> list[str]:
     return [b.name for b in ranked if (kind is None or b.device in (None, kind)) and b.available()]
 
 
+MAX_PIXELS = 2**31 - 1  # every backend indexes pixels (and tiles) with 32-bit integers
+
+
+def check_image_size(camera: Camera) -> None:
+    """Refuse an image no backend can index, before anything is allocated (a crafted camera must not crash)."""
+    pixels = int(camera.width) * int(camera.height)
+    if pixels > MAX_PIXELS:
+        raise ShapeError(f"camera {camera.name!r} is {camera.width}x{camera.height} = {pixels:,} pixels; the "
+                         f"rasterizer renders at most {MAX_PIXELS:,} pixels per image (about 46000 x 46000)")
+
+
 def rasterize(surfels: Surfels, camera: Camera, *, backend: str | Backend = "auto", background=None,
               settings: RasterSettings = SETTINGS) -> RenderOutput:
     """Render `surfels` seen from `camera`. Differentiable with respect to every Surfels field (not the camera).
@@ -165,5 +176,6 @@ def rasterize(surfels: Surfels, camera: Camera, *, backend: str | Backend = "aut
     if not isinstance(settings, RasterSettings):
         raise TypeError(f"settings must be a splatzoo RasterSettings, got {type(settings).__name__}")
     surfels.validate()
+    check_image_size(camera)
     b = select_backend(backend, surfels.means.device)
     return b.render(surfels, camera.detach(), background, settings)
