@@ -146,9 +146,15 @@ def ssim_torch(a, b) -> torch.Tensor:
     return ssim_map(a, b).mean()
 
 
-def dssim_loss(a, b) -> torch.Tensor:
-    """The 2DGS/3DGS structural loss term 1 - SSIM, differentiable."""
-    return 1.0 - ssim_torch(a, b)
+def dssim_loss(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """The 2DGS/3DGS structural loss term 1 - SSIM of two float images [H,W,3], differentiable. For the training
+    loop: shapes are checked but values are not (that would make a GPU wait every step; the trainer checks the
+    loss instead)."""
+    if a.shape != b.shape or a.dim() != 3 or a.shape[-1] != 3:
+        raise ShapeError(f"dssim_loss: expected two images [H,W,3] of one shape, got {list(a.shape)} and "
+                         f"{list(b.shape)}")
+    dtype = torch.promote_types(a.dtype, b.dtype)
+    return 1.0 - _ssim_map_chw(_hwc_to_batch(a.to(dtype)), _hwc_to_batch(b.to(dtype))).mean()
 
 
 def ssim(a, b) -> float:

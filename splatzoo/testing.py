@@ -80,3 +80,79 @@ def dense_overlap(n: int = 5000, width: int = 128, height: int = 128, K: int = 0
     wp = r(n, K) * 2 * math.pi
     wa = (r(n, K, 3) - 0.5) * 0.6
     return Surfels(means, quats, scales, opac, color, wv, wp, wa).to(dtype=dtype), cam
+
+
+# Operators that make the host wait for the device: a scalar read (item(), float(t), bool(t), an `if` on a
+# tensor) and the ones whose output size depends on the data (the host must learn the size before it allocates).
+HOST_SYNC_OPS = ("aten._local_scalar_dense", "aten.nonzero", "aten.masked_select", "aten._unique2", "aten.unique_dim",
+                 "aten.unique_consecutive", "aten.equal")
+
+
+class HostSyncs:
+    """Counts the points at which a program on a GPU would wait for the device, while the program runs on any
+    device (so a CPU-only test can hold the count of a training step): the operators of HOST_SYNC_OPS, seen by a
+    dispatch mode (C++ extension calls included), and Tensor.tolist / Tensor.numpy, which read memory directly.
+    A copy to the host (`.cpu()`) is not counted: on a CPU run it is no operation at all.
+
+        with HostSyncs() as syncs:
+            trainer.step()
+        syncs.total, syncs.by_kind  # {"aten._local_scalar_dense": 3, "tolist": 1, ...}
+        syncs.sites                 # {(file, line, kind): count} of the splatzoo code that asked
+    """
+
+    def __init__(self) -> None:
+        from collections import Counter
+
+        self.by_kind: Counter = Counter()
+        self.sites: Counter = Counter()
+        self._mode = None
+        self._saved: dict = {}
+
+    @property
+    def total(self) -> int:
+        return sum(self.by_kind.values())
+
+    def _record(self, kind: str) -> None:
+        import traceback
+
+        stack = traceback.extract_stack()[:-2]
+        # host-side by design, so no wait on a GPU: Adam's step counters, and a camera's checks (Camera.to checks a
+        # camera before it moves it to the device)
+        if any("/torch/optim/" in f.filename or (f.filename.endswith("/splatzoo/types.py") and f.name == "__post_init__")
+               for f in stack[-6:]):
+            return
+        self.by_kind[kind] += 1
+        here = next((f for f in reversed(stack)
+                     if "/splatzoo/" in f.filename and not f.filename.endswith("testing.py")), None)
+        self.sites[(here.filename.split("/splatzoo/")[-1], here.lineno, kind) if here else ("?", 0, kind)] += 1
+
+    def __enter__(self) -> "HostSyncs":
+        from torch.utils._python_dispatch import TorchDispatchMode
+
+        counter = self
+
+        class _Mode(TorchDispatchMode):
+            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+                name = str(func.overloadpacket) if hasattr(func, "overloadpacket") else str(func)
+                if name in HOST_SYNC_OPS:
+                    counter._record(name)
+                return func(*args, **(kwargs or {}))
+
+        for method in ("tolist", "numpy"):
+            original = getattr(torch.Tensor, method)
+            self._saved[method] = original
+
+            def wrapped(t, *a, _original=original, _method=method, **kw):
+                counter._record(_method)
+                return _original(t, *a, **kw)
+
+            setattr(torch.Tensor, method, wrapped)
+        self._mode = _Mode()
+        self._mode.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._mode.__exit__(*exc)
+        for method, original in self._saved.items():
+            setattr(torch.Tensor, method, original)
+        self._saved.clear()

@@ -8,6 +8,7 @@ Conventions (see README "Conventions"):
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field, fields, replace
 
 import torch
@@ -61,10 +62,16 @@ class Camera:
         return torch.linalg.inv(self.world_to_camera)
 
     def to(self, device=None, dtype=None) -> "Camera":
-        w2c, K = self.world_to_camera.to(device=device, dtype=dtype), self.K.to(device=device, dtype=dtype)
-        if w2c is self.world_to_camera and K is self.K:
-            return self  # nothing moved: skip the copy and its validation (a render calls this per frame)
-        return replace(self, world_to_camera=w2c, K=K)
+        # cast where the tensors are (the host, for cameras read from files) and check the cast there; then move
+        # the checked values, so that a camera sent to a GPU every step never makes the GPU wait for a check
+        w2c, K = self.world_to_camera.to(dtype=dtype), self.K.to(dtype=dtype)
+        cast = self if w2c is self.world_to_camera and K is self.K else replace(self, world_to_camera=w2c, K=K)
+        w2c, K = cast.world_to_camera.to(device=device), cast.K.to(device=device)
+        if w2c is cast.world_to_camera and K is cast.K:
+            return cast  # nothing moved: skip the copy (a render calls this per frame)
+        moved = copy.copy(cast)
+        moved.world_to_camera, moved.K = w2c, K
+        return moved
 
     def detach(self) -> "Camera":
         """The same camera with its tensors cut from any autograd graph (rasterizers take cameras as constants)."""

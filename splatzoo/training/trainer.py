@@ -345,9 +345,6 @@ class Trainer:
             loss = loss + cfg.lambda_normal * normal_consistency_loss(render, cam)
         if cfg.lambda_dist > 0 and step > cfg.at(cfg.dist_from):
             loss = loss + cfg.lambda_dist * distortion_loss(render)
-        if not torch.isfinite(loss):
-            raise SplatzooError(f"loss became {loss.item()} at iteration {step}; lower the learning rates or "
-                                "report the scene (the run keeps its last checkpoint)")
         return ViewLoss(loss, l_photo, render, target, cam, scale)
 
     def _backward(self, views: list, step: int, track: bool):
@@ -380,7 +377,7 @@ class Trainer:
         n = self.cfg.views_per_step
         for p, grad in zip(params, grads):
             p.grad = grad / n if n > 1 else grad
-        return torch.stack(losses).mean(), torch.stack(photos).mean(), render, target, float(error) / n
+        return torch.stack(losses).mean(), torch.stack(photos).mean(), render, target, error / n
 
     @torch.no_grad()
     def _probe_error(self, surfels_of) -> float:
@@ -426,6 +423,11 @@ class Trainer:
                 g["lr"] = _position_lr(cfg, step, scene.extent) * self.lr_scale
         track = self.densify_on and not self.mcmc and step <= self.d_until
         loss, l_photo, render, target, error = self._backward(mine, step, track)
+        # one read of the step's numbers (each read makes a GPU wait), and the divergence check on it
+        loss_value, photo_value, error = torch.stack([loss.detach(), l_photo.detach(), error.detach()]).tolist()
+        if not math.isfinite(loss_value):
+            raise SplatzooError(f"loss became {loss_value} at iteration {step}; lower the learning rates or "
+                                "report the scene (the run keeps its last checkpoint)")
         previous = net.recent_error
         net.recent_error = error if previous is None else previous + ERROR_AVERAGE * (error - previous)
         optimizer.step()
@@ -447,7 +449,7 @@ class Trainer:
         net.on_step(step, cfg, optimizer)  # model-specific edits (e.g. adaptive waves); no-op by default
         self.train_seconds += time.perf_counter() - t0
         self.iteration = step
-        out = {"loss": loss.item(), "photo": l_photo.item(), "records": []}
+        out = {"loss": loss_value, "photo": photo_value, "records": []}
         if step % cfg.log_every == 0 or step == cfg.iterations:
             mean = torch.stack([loss, l_photo]).to(torch.float32)
             comm.sum_([mean])  # the loss of all the step's views
