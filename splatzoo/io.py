@@ -89,7 +89,24 @@ def torch_save(obj, path) -> None:
     import torch
 
     with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+        try:
+            torch.save(obj, tmp)
+        except RuntimeError as e:
+            # torch's zip writer reports a failed write (a full disk, a quota) as RuntimeError ("unexpected pos",
+            # "failed writing file data"), not as OSError: say it as the disk error it is
+            free = _free_bytes(tmp.parent)
+            reason = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+            full = f"the disk is full ({free / 1e6:.0f} MB free)" if free is not None and free < 64e6 else reason
+            raise SplatzooError(f"cannot write {path}: {full}. Free disk space or choose another location; the "
+                                "previous file (if any) is unchanged") from None
+
+
+def _free_bytes(folder) -> int | None:
+    try:
+        st = os.statvfs(folder)
+        return st.f_bavail * st.f_frsize
+    except (OSError, AttributeError):
+        return None
 
 
 def _finite(o):

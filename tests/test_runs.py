@@ -393,6 +393,17 @@ def test_bad_values_and_full_disk(tiny_data, tmp_path, monkeypatch):
     assert (run / "checkpoint.pt").read_bytes() == before
     assert [p.name for p in run.iterdir() if p.name.startswith(".checkpoint")] == []
 
+    # what torch really raises when its zip writer meets a full disk: a RuntimeError, half a file written
+    def torch_full(obj, path):
+        Path(path).write_bytes(b"PK\x03\x04 half")
+        raise RuntimeError("[enforce fail at inline_container.cc:664] . unexpected pos 4096 vs 4043")
+
+    monkeypatch.setattr(torch, "save", torch_full)
+    with pytest.raises(SplatzooError, match=r"cannot write .*checkpoint.pt: .*Free disk space"):
+        quick_train(tiny_data, run, resume=True)
+    assert (run / "checkpoint.pt").read_bytes() == before
+    assert [p.name for p in run.iterdir() if p.name.startswith(".checkpoint")] == []
+
 
 def test_runs_from_before_the_antialiased_default_resume_without_it(tiny_data, tmp_path):
     """Anti-aliasing is on by default now; a run record written before the option existed lacks the key and meant
