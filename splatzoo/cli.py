@@ -309,6 +309,8 @@ def eval_command(
                                          help="3dgs ([0,1] inputs, as the paper's tables) or standard ([-1,1])"),
     scale: Optional[str] = typer.Option(None, "--scale", help="also render smaller, e.g. 0.5,0.25, and score "
                                         "against area-averaged images and the model's own full-size render"),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="metrics file to write (default RUN/metrics.json); "
+                                       "elsewhere, the run is only read (read-only media)"),
 ) -> None:
     """Evaluate a trained run on its test views; prints a table and writes RUN/metrics.json."""
     from .evaluate import metrics_table, parse_scales, scales_table
@@ -316,11 +318,11 @@ def eval_command(
 
     scales = parse_scales(scale) if scale is not None else ()
     metrics = evaluate_run(run, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention,
-                           scales=scales)
+                           scales=scales, out=out)
     typer.echo(metrics_table(metrics))
     if scales:
         typer.echo(scales_table(metrics))
-    typer.echo(f"wrote {Path(run) / 'metrics.json'}")
+    typer.echo(f"wrote {out if out is not None else Path(run) / 'metrics.json'}")
 
 
 @app.command("render")
@@ -330,12 +332,14 @@ def render_command(
     video: bool = typer.Option(False, "--video", help="also write an orbit video (renders/orbit.webm, VP9: plays in browsers)"),
     frames: int = typer.Option(60, "--frames", min=1, max=100000, help="frames of the orbit video"),
     backend: str = _BACKEND,
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="folder to write into (default RUN/renders); "
+                                       "elsewhere, the run is only read (read-only media)"),
 ) -> None:
     """Render a trained run's views to PNG (and an orbit video)."""
     from .runs import render_run
 
-    paths = render_run(run, split=split, video=video, backend=backend, frames=frames)
-    typer.echo(f"wrote {len(paths)} files under {Path(run) / 'renders'}")
+    paths = render_run(run, split=split, video=video, backend=backend, frames=frames, out=out)
+    typer.echo(f"wrote {len(paths)} files under {out if out is not None else Path(run) / 'renders'}")
 
 
 @app.command("view")

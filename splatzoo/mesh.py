@@ -179,8 +179,13 @@ def fuse_depth_frames(frames, params: MeshParameters, *, weight_threshold: float
             E = o3c.Tensor(cam.world_to_camera.double().cpu().numpy())
             d_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth, dtype=np.float32)))
             c_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color, dtype=np.float32)))
-            blocks = grid.compute_unique_block_coordinates(d_img, K, E, 1.0, params.depth_trunc, trunc_mult)
-            grid.integrate(blocks, d_img, c_img, K, E, 1.0, params.depth_trunc, trunc_mult)
+            try:
+                blocks = grid.compute_unique_block_coordinates(d_img, K, E, 1.0, params.depth_trunc, trunc_mult)
+            except RuntimeError:  # open3d: "No block is touched in TSDF volume": this view adds nothing
+                stats.fused_pixels -= int(valid.sum())
+                blocks = None
+            if blocks is not None:
+                grid.integrate(blocks, d_img, c_img, K, E, 1.0, params.depth_trunc, trunc_mult)
         if (i + 1) % step == 0 or (total is not None and i + 1 == total):
             say(f"fused {i + 1}/{total or '?'} views ({stats.fused_pixels} depth pixels)")
     if weight_threshold is None:
@@ -273,7 +278,7 @@ def extract_mesh_from_run(run_dir, out=None, *, backend: str = "auto", progress=
     out = Path(out) if out is not None else run.path / "mesh.ply"
     if out.suffix.lower() in (".pt", ".json", ".jsonl"):
         raise SplatzooError(f"{out} is not a mesh file name; use .ply (or .obj/.off/.stl/.glb)")
-    with run.lock("splatzoo extract-mesh"):
+    with run.writing("splatzoo extract-mesh", out, "--out FILE.ply"):
         model, scene, _ = run.load(backend)
         mesh, _, _ = extract_mesh(model, [v.camera for v in scene.train], backend=backend, progress=progress, **options)
         write_mesh(mesh, out)

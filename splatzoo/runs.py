@@ -297,6 +297,22 @@ class Run:
         finally:
             os.close(fd)  # releases the flock
 
+    @contextmanager
+    def writing(self, command: str, target, option: str):
+        """Hold the run's lock while `command` writes `target` inside the run folder; a target elsewhere only reads
+        the run, which then needs no lock and may be on read-only media (an archive, a shared disk). `option` is
+        the command's option that writes elsewhere, named when the run folder cannot be written."""
+        target = Path(target).resolve()
+        inside = self.path.resolve() in (target, *target.parents)
+        if not inside:
+            self.require_run()
+            yield self
+            return
+        if self.path.is_dir() and not os.access(self.path, os.W_OK):  # a read-only file system or no permission
+            raise SplatzooError(f"{self.path} is read-only; pass {option} to write the results elsewhere")
+        with self.lock(command):
+            yield self
+
     def _remove_stale_temp_files(self) -> None:
         """Temporary files of atomic writes that a kill left behind (only the lock holder writes here)."""
         for folder in (self.path, self.renders_dir, self.renders_dir / "test", self.renders_dir / "train"):
@@ -782,13 +798,15 @@ def load_run(run_dir, backend: str | None = None):
 
 
 def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None,
-                 lpips_convention: str | None = None, scales=()) -> dict:
-    """Evaluate a finished run on its test views and write RUN/metrics.json; `scales` (each below 1) adds the
-    metrics of smaller renders against area-averaged images (evaluate_scales) as its "scales" entry."""
+                 lpips_convention: str | None = None, scales=(), out=None) -> dict:
+    """Evaluate a finished run on its test views and write RUN/metrics.json (or the file `out`: the run is then only
+    read, so it may be on read-only media); `scales` (each below 1) adds the metrics of smaller renders against
+    area-averaged images (evaluate_scales) as its "scales" entry."""
     from .evaluate import LPIPS_CONVENTION, LPIPS_NET, evaluate, evaluate_scales
 
     run = Run(run_dir)
-    with run.lock("splatzoo eval"):
+    target = Path(out) if out is not None else run.metrics_path
+    with run.writing("splatzoo eval", target, "--out FILE.json"):
         model, scene, record = run.load(backend)
         old = run.metrics() if run.metrics_path.exists() else None
         metrics = evaluate(model, scene, backend=backend, train_seconds=(old or {}).get("train_seconds"),
@@ -797,23 +815,25 @@ def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None
         if scales:
             metrics["scales"] = evaluate_scales(model, scene, scales, backend=backend, lpips_net=lpips_net or LPIPS_NET,
                                                 lpips_convention=lpips_convention or LPIPS_CONVENTION)
-        run.write_metrics(metrics)
+        write_json(target, metrics)
     return metrics
 
 
 def render_run(run_dir, *, split: str = "test", video: bool = False, backend: str = "auto",
-               frames: int = 60) -> list[Path]:
-    """Write the split's renders as PNG (and an orbit video, WebM) into RUN/renders; returns the written paths."""
+               frames: int = 60, out=None) -> list[Path]:
+    """Write the split's renders as PNG (and an orbit video, WebM) into RUN/renders (or the folder `out`: the run
+    is then only read); returns the written paths."""
     from .evaluate import orbit_cameras, resolve_backend, save_test_renders, write_video
 
     if split not in ("test", "train"):
         raise SplatzooError(f"unknown split {split!r}; use test or train")
     run = Run(run_dir)
-    with run.lock("splatzoo render"):
+    folder = Path(out) if out is not None else run.renders_dir
+    with run.writing("splatzoo render", folder, "--out FOLDER"):
         model, scene, _ = run.load(backend)
-        paths = save_test_renders(model, scene, run.renders_dir, backend=backend, split=split)
+        paths = save_test_renders(model, scene, folder, backend=backend, split=split)
         if video:
             cams = orbit_cameras([v.camera for v in scene.train], frames)
-            paths.append(write_video(model, cams, scene.background, run.renders_dir / "orbit.webm",
+            paths.append(write_video(model, cams, scene.background, folder / "orbit.webm",
                                      backend=resolve_backend(backend, next(model.parameters()).device)))
     return paths

@@ -416,3 +416,40 @@ def test_runs_from_before_the_antialiased_default_resume_without_it(tiny_data, t
     (run / "config.json").write_text(json.dumps(rec))
     assert Run(run).train_config().antialias is False
     assert TrainConfig().antialias is True
+
+
+def test_a_run_on_read_only_media_is_evaluated_rendered_and_meshed_elsewhere(tiny_data, tmp_path, monkeypatch):
+    """Reading commands with --out outside the run take no lock and write nothing into it; without --out a
+    read-only run folder is named, with the option to use."""
+    import os
+
+    run = tmp_path / "run"
+    quick_train(tiny_data, run)
+    before = sorted(p.name for p in run.iterdir())
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == run and mode & os.W_OK
+                        else real_access(p, mode, **kw))
+    real_open = os.open
+
+    def no_writes_in_run(path, flags, *a, **kw):  # what a read-only mount does to the lock file
+        if Path(path).parent == run and flags & (os.O_CREAT | os.O_WRONLY | os.O_RDWR):
+            raise OSError(30, "Read-only file system")
+        return real_open(path, flags, *a, **kw)
+
+    monkeypatch.setattr(os, "open", no_writes_in_run)
+    for args, written in ((["eval", str(run), "--backend", "cpu", "--out", str(tmp_path / "m.json")], "m.json"),
+                          (["render", str(run), "--backend", "cpu", "--out", str(tmp_path / "r")], "r")):
+        r = runner.invoke(app, args)
+        assert r.exit_code == 0, (args, r.output, r.exception)
+        assert (tmp_path / written).exists()
+    # a 12-iteration model has no surface to mesh: the command reads the run and fuses its depth all the same
+    r = runner.invoke(app, ["extract-mesh", str(run), "--backend", "cpu", "--out", str(tmp_path / "mesh.ply")])
+    assert isinstance(r.exception, SplatzooError) and "depth pixels were fused" in str(r.exception), r.output
+    assert json.loads((tmp_path / "m.json").read_text())["psnr"] > 0
+    assert list((tmp_path / "r" / "test").glob("*.png"))
+    for args, option in ((["eval", str(run), "--backend", "cpu"], "--out FILE.json"),
+                         (["render", str(run), "--backend", "cpu"], "--out FOLDER"),
+                         (["extract-mesh", str(run), "--backend", "cpu"], "--out FILE.ply")):
+        r = runner.invoke(app, args)
+        assert r.exit_code != 0 and "is read-only" in str(r.exception) and option in str(r.exception), r.output
+    assert sorted(p.name for p in run.iterdir()) == before
