@@ -558,14 +558,14 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     backend, device = chosen.name, chosen.torch_device()
     comm = ProcessGroupComm(device) if distributed else Comm()
     writer = comm.rank == 0
-    try:
-        if state is None:
-            trainer = Trainer.start(scene, model, model_config, cfg, backend, device, comm=comm)
-        else:
+    if state is None:  # a fresh run: its errors are its own, not a checkpoint's
+        trainer = Trainer.start(scene, model, model_config, cfg, backend, device, comm=comm)
+    else:
+        try:
             trainer = Trainer.resume(scene, state, cfg, backend, device, comm=comm)
-    except (KeyError, ValueError, TypeError, RuntimeError, IndexError) as e:
-        raise SplatzooError(f"checkpoint {run.checkpoint_path} does not hold a consistent training state ({e}); "
-                            f"delete {run.path} or pass --overwrite to train again") from None
+        except (KeyError, ValueError, TypeError, RuntimeError, IndexError) as e:
+            raise SplatzooError(f"checkpoint {run.checkpoint_path} does not hold a consistent training state ({e}); "
+                                f"delete {run.path} or pass --overwrite to train again") from None
     if writer:
         _truncate_log(run, trainer.iteration)
     stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)

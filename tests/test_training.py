@@ -299,3 +299,24 @@ def test_a_training_step_waits_for_the_device_four_times(model, tmp_path):
         sites = "; ".join(f"{f}:{line} {kind} x{n}" for (f, line, kind), n in sorted(syncs.sites.items()))
         assert syncs.total <= 4, f"{syncs.total} host syncs in one step: {sites}"
     assert counts == [4, 4, 4], counts
+
+
+def test_counts_and_seeds_beyond_the_machine_are_refused_with_the_real_cause(tmp_path, monkeypatch):
+    """A primitive count the memory cannot hold is refused with the estimate before anything is allocated (it
+    used to allocate until the kernel killed it, or be blamed on a checkpoint the fresh run does not have); a seed
+    beyond 64 bits is named; the largest seed trains, random draws per view included."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.training import trainer as trainer_module
+
+    data = make_synthetic_scene("plain", tmp_path / "data", views=4, width=24, height=24)
+    monkeypatch.setattr(trainer_module, "available_memory", lambda: 2**30)  # a 1 GiB machine
+    for option, value in (("num_primitives", 10_000_000), ("max_primitives", 10_000_000)):
+        cfg = TrainConfig(iterations=2, backend="cpu", **{option: value})
+        with pytest.raises(SplatzooError, match=rf"GiB .* 1.0 GiB are available; pass a smaller --{option.replace('_', '-')}") as e:
+            train(data, "gabor", {}, cfg, tmp_path / option, progress=False, evaluate_at_end=False)
+        assert "checkpoint" not in str(e.value) and "10,000,000 primitives" in str(e.value)
+    with pytest.raises(SplatzooError, match=r"--seed must be between 0 and 9223372036854775807"):
+        TrainConfig(seed=2**64).validate()
+    cfg = TrainConfig(iterations=2, backend="cpu", num_primitives=50, seed=2**63 - 1, random_downscale=1.0)
+    train(data, "2dgs", {}, cfg, tmp_path / "big_seed", progress=False, evaluate_at_end=False)
+    assert (tmp_path / "big_seed" / "model.pt").is_file()

@@ -31,6 +31,49 @@ MIN_DOWNSCALED_SIDE = 64      # ... where the view's shorter side stays at least
 PROBE_VIEWS = 4               # the model's probe_error renders this many training views, evenly spaced
 
 
+MAX_SEED = 2**63 - 1  # torch generators take 64-bit seeds
+
+
+def memory_estimate(model: str, model_config, primitives: int) -> int:
+    """Bytes a model of `primitives` primitives holds in training: each parameter row with its gradient and Adam's
+    two moments (4 copies), the densification statistics, and its initial points (a lower bound: renders and
+    autograd's saved tensors come on top)."""
+    from ..zoo import MODELS
+
+    spec = MODELS.get(model)
+    empty = spec.cls(model_config, 0)  # parameter shapes without primitives: the per-primitive row sizes
+    per_row = sum(math.prod(p.shape[1:]) for p in empty.parameters())
+    return primitives * (4 * 4 * per_row + 4 * 2 + 4 * 6)
+
+
+def available_memory() -> int | None:
+    """Bytes the system can give without swapping (MemAvailable), None where it cannot be read."""
+    try:
+        for line in open("/proc/meminfo"):
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(model: str, model_config, initial: int, budget: int, device: torch.device) -> None:
+    """Refuse, with the estimate, a primitive count the machine cannot hold, before anything is allocated."""
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        where, have = f"free on {torch.cuda.get_device_name(device)}", free
+    else:
+        where, have = "available", available_memory()
+    if have is None:
+        return
+    for what, n, option in (("start with", initial, "--num-primitives"), ("grow to", budget, "--max-primitives")):
+        need = memory_estimate(model, model_config, n)
+        if need > 0.8 * have:
+            raise SplatzooError(f"{model} would {what} {n:,} primitives, which needs at least {need / 2**30:.1f} GiB "
+                                f"for its parameters and optimizer state, but {have / 2**30:.1f} GiB are {where}; "
+                                f"pass a smaller {option}")
+
+
 def densify_budget(scene, initial: int) -> int:
     """The primitive count densification may reach when --max-primitives is not given: one surfel per
     PIXELS_PER_SURFEL training pixels (3DGS's converged scenes hold about one Gaussian per 100), and at least
@@ -101,6 +144,8 @@ class TrainConfig:
         for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every", "batch_size", "nproc"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise SplatzooError(f"training option {name} must be at least 1, got {getattr(self, name)}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise SplatzooError(f"--seed must be between 0 and {MAX_SEED} (2^63 - 1), got {self.seed}")
         return self
 
     @classmethod
@@ -280,6 +325,9 @@ class Trainer:
     def start(cls, scene, model: str, model_config, cfg: TrainConfig, backend: str, device,
               comm: Comm | None = None) -> "Trainer":
         """A fresh run: the model initialised from the scene's points (chosen by the seed)."""
+        initial = cfg.num_primitives or scene.points.shape[0]
+        budget = (cfg.max_primitives or densify_budget(scene, initial)) if cfg.densify else initial
+        check_memory(model, model_config, initial, budget, device)
         pts, cols = select_initial_points(scene.points, scene.colors, cfg.num_primitives, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
         net.antialias = cfg.antialias
@@ -304,7 +352,7 @@ class Trainer:
         """A generator of its own for each (step, view, purpose): the same draws on every rank and after a resume,
         and none taken from the generator that orders the views."""
         seed = (self.cfg.seed * 1_000_003 + step) * 65_537 + self.view_index.get(id(view), 0)
-        return torch.Generator().manual_seed(seed + (salt << 48))
+        return torch.Generator().manual_seed((seed + (salt << 48)) % 2**63)  # any seed up to MAX_SEED
 
     def _downscale(self, view, step: int) -> float:
         """1, or the smaller scale this (step, view) trains at under --random-downscale."""
