@@ -296,3 +296,34 @@ def test_colmap_camera_sizes_that_do_not_fit_the_images(tmp_path):
     rec.write_binary(root / "sparse" / "0")
     with pytest.raises(DataError, match="is 0x48; a camera needs a size of at least 1x1"):
         load_scene(root)
+
+
+def _png_header_only(w: int, h: int) -> bytes:
+    """A PNG whose header claims w x h over a body of a few bytes (a crafted decompression bomb)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\x00" * 10)) + chunk(b"IEND", b""))
+
+
+def test_crafted_transforms_and_huge_image_headers_are_named(tmp_path):
+    """A JSON nesting bomb, a file_path longer than the file system allows, and a PNG header claiming 20000x20000
+    (over PIL's decompression-bomb limit, as a real 400 MP photo is): DataErrors that name the file, no traceback."""
+    root = _blender(tmp_path / "b", n=2)
+    (root / "transforms_train.json").write_text('{"frames": ' + "[" * 100000 + "]" * 100000 + "}")
+    with pytest.raises(DataError, match="nests its JSON too deeply"):
+        load_scene(root)
+    root = _blender(tmp_path / "c", n=2)
+    _edit(root, _frame1("file_path", "./train/" + "a" * 5000))
+    with pytest.raises(DataError, match="cannot be looked up"):
+        load_scene(root)
+    root = _blender(tmp_path / "d", n=2)
+    for i in range(2):
+        (root / "train" / f"r_{i}.png").write_bytes(_png_header_only(20000, 20000))
+    # the header is read (a real photo can be this large); the body then fails to decode, and says so
+    with pytest.raises(DataError, match="r_0.png is unreadable or corrupt"):
+        load_scene(root)

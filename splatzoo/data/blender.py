@@ -34,6 +34,8 @@ def _read_json(path: Path) -> dict:
         raise DataError(f"cannot read {path}: {e}") from None
     except json.JSONDecodeError as e:
         raise DataError(f"{path} is not valid JSON (line {e.lineno}: {e.msg}); fix or re-export it") from None
+    except RecursionError:
+        raise DataError(f"{path} nests its JSON too deeply to be a transforms file; fix or re-export it") from None
     if not isinstance(meta, dict):
         raise DataError(f"{path} must hold a JSON object with a 'frames' list, not a {_json_type(meta)}; a Blender "
                         "transforms file is {\"camera_angle_x\": ..., \"frames\": [...]}")
@@ -120,12 +122,16 @@ def _pose(frame: dict, where: str, i: int) -> np.ndarray:
 
 def _image_path(root: Path, file_path: str, where: Path) -> Path:
     p = root / file_path
-    if p.is_file():
-        return p
-    for ext in (".png", ".jpg", ".jpeg"):
-        cand = p.with_name(p.name + ext)
-        if cand.is_file():
-            return cand
+    try:
+        if p.is_file():
+            return p
+        for ext in (".png", ".jpg", ".jpeg"):
+            cand = p.with_name(p.name + ext)
+            if cand.is_file():
+                return cand
+    except OSError as e:  # a name longer than the file system allows, ...
+        raise DataError(f"image path {str(p)[:120]}... (from {where}) cannot be looked up ({e.strerror or e}); "
+                        "fix the frame's file_path") from None
     raise DataError(f"image {p} (from {where}) does not exist (also tried .png/.jpg); restore it or remove the "
                     "frame from the transforms file")
 

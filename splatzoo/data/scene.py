@@ -7,6 +7,7 @@ does not need tens of GB while a 48-view 256x256 synthetic scene is decoded once
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from dataclasses import dataclass, field
@@ -40,13 +41,27 @@ def _missing_end(head: bytes, tail: bytes) -> str | None:
     return None
 
 
+@contextlib.contextmanager
+def _no_pixel_limit():
+    """PIL refuses images over about 179 MP as possible decompression bombs, even to read their header. A real
+    photo can be that large and is decoded once (then downscaled, see target_scale), so the limit is lifted for our
+    own reads; a crafted header over a small body still fails to decode and is named as damaged."""
+    from PIL import Image
+
+    saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+    try:
+        yield
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
 def _decodes_fully(source) -> str | None:
     """The decoder's verdict for a file whose end marker is missing: None when PIL decodes every pixel (extra data
     after the image, as some cameras append, is fine), else its complaint."""
     from PIL import Image
 
     try:
-        with Image.open(source) as im:
+        with _no_pixel_limit(), Image.open(source) as im:
             im.load()
         return None
     except Exception as e:  # PIL raises OSError, SyntaxError, ValueError... for damaged data
@@ -86,7 +101,7 @@ def image_size(path: Path) -> tuple[int, int]:
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as im:
+        with _no_pixel_limit(), Image.open(path) as im:
             size = int(im.size[0]), int(im.size[1])
         check_image_complete(path)
         return size
@@ -101,7 +116,7 @@ def image_has_alpha(path: Path) -> bool:
     from PIL import Image
 
     try:
-        with Image.open(path) as im:
+        with _no_pixel_limit(), Image.open(path) as im:
             return im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info)
     except OSError:
         return False
