@@ -676,16 +676,17 @@ def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, re
     """Train on cfg.nproc processes (torch.distributed: gloo on CPU, NCCL on CUDA) while this process holds the
     run's lock. Ctrl-C reaches every rank from the terminal; SIGTERM to this process is passed on. A rank that
     fails or dies ends the run with a clear error; the last checkpoint stays."""
-    import socket as socket_module
+    import tempfile
 
     import torch.multiprocessing as mp
 
-    with socket_module.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    # The ranks meet through a file (no listening store socket) and talk over the loopback interface only:
+    # torch.distributed has no authentication, so nothing of a one-machine run may listen on the network.
+    rendezvous = Path(tempfile.mkdtemp(prefix="splatzoo-ranks-")) / "store"
     ctx = mp.start_processes(_rank_main, nprocs=cfg.nproc, join=False, start_method="spawn",
-                             args=(cfg.nproc, port, str(run.path), scene, model, dataclasses.asdict(model_config),
-                                   dataclasses.asdict(cfg), resume, progress, evaluate_at_end, stop_after))
+                             args=(cfg.nproc, str(rendezvous), str(run.path), scene, model,
+                                   dataclasses.asdict(model_config), dataclasses.asdict(cfg), resume, progress,
+                                   evaluate_at_end, stop_after))
     pids = [p.pid for p in ctx.processes]
 
     def forward(signum, frame):
@@ -716,14 +717,25 @@ def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, re
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+        shutil.rmtree(rendezvous.parent, ignore_errors=True)
     from .zoo import load_model
 
     return TrainResult(run.path, load_model(run.model_path) if run.model_path.exists() else None,
                        run.metrics() or {})
 
 
-def _rank_main(rank: int, world: int, port: int, run_path: str, scene, model: str, model_config: dict, cfg: dict,
-               resume: bool, progress: bool, evaluate_at_end: bool, stop_after: int | None) -> None:
+def loopback_interface() -> str | None:
+    """The name of the loopback network interface ("lo" on Linux, "lo0" on macOS), None if there is none."""
+    import socket as socket_module
+
+    try:
+        return next((name for _, name in socket_module.if_nameindex() if name.startswith("lo")), None)
+    except OSError:
+        return None
+
+
+def _rank_main(rank: int, world: int, rendezvous: str, run_path: str, scene, model: str, model_config: dict,
+               cfg: dict, resume: bool, progress: bool, evaluate_at_end: bool, stop_after: int | None) -> None:
     """One rank of `_spawn_ranks`: join the process group, train, and exit with the shell's code for how it ended."""
     from datetime import timedelta
 
@@ -737,7 +749,11 @@ def _rank_main(rank: int, world: int, port: int, run_path: str, scene, model: st
         torch.cuda.set_device(rank % torch.cuda.device_count())
     else:  # the ranks share the cores
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
-    dist.init_process_group("nccl" if cuda else "gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank,
+    lo = loopback_interface()
+    if lo is not None:  # gloo and NCCL bind their connections to this interface (unless the user chose one)
+        os.environ.setdefault("GLOO_SOCKET_IFNAME", lo)
+        os.environ.setdefault("NCCL_SOCKET_IFNAME", lo)
+    dist.init_process_group("nccl" if cuda else "gloo", init_method=f"file://{rendezvous}", rank=rank,
                             world_size=world, timeout=timedelta(minutes=10))
     code = 0
     try:

@@ -170,3 +170,60 @@ def test_a_dying_rank_ends_the_run_clearly(tiny_data, tmp_path):
     assert (run / "checkpoint.pt").exists()
     with pytest.raises(SplatzooError, match="nproc"):
         train(tiny_data, "gabor", {}, {"nproc": 3}, run, resume=True, progress=False)
+
+
+def _listening_addresses(pids: set[int]) -> set[str]:
+    """Local addresses (hex, as /proc/net/tcp writes them) of the listening TCP sockets that `pids` hold."""
+    inodes = set()
+    for pid in pids:
+        try:
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                link = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if link.startswith("socket:["):
+                    inodes.add(link[8:-1])
+        except OSError:
+            continue
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            cols = line.split()
+            if cols[3] == "0A" and cols[9] in inodes:  # LISTEN
+                found.add(cols[1].rsplit(":", 1)[0])
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="reads Linux's socket tables")
+def test_a_one_machine_run_listens_on_loopback_only(tiny_data, tmp_path):
+    """torch.distributed has no authentication: the ranks of `--nproc` meet through a file and listen on the
+    loopback interface alone, never on an address other machines reach."""
+    import threading
+
+    seen: set[str] = set()
+    done = threading.Event()
+
+    def children() -> set[int]:
+        me, out = os.getpid(), set()
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    if int(Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[1]) == me:
+                        out.add(int(entry))
+                except (OSError, IndexError, ValueError):
+                    continue
+        return out
+
+    def watch():
+        while not done.wait(0.05):
+            seen.update(_listening_addresses(children()))
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        train(tiny_data, "2dgs", {}, TrainConfig(**{**RUN, "iterations": 8}, nproc=2), tmp_path / "n2",
+              progress=False, evaluate_at_end=False)
+    finally:
+        done.set()
+        watcher.join()
+    loopback = {"0100007F", "00000000000000000000000001000000"}  # 127.0.0.1, ::1
+    assert seen, "the ranks should listen for each other (gloo)"
+    assert seen <= loopback, f"ranks listened on {sorted(seen - loopback)}"
