@@ -348,6 +348,62 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+# ---- who may open the viewer's websocket ----------------------------------------------------------------------
+# A browser lets any web page open a websocket to 127.0.0.1, and viser accepts every handshake that names its
+# protocol: a page the user visits elsewhere could watch the models and drive the viewer. So the handshake must come
+# from a page of the viewer itself (its Origin is the Host it asks for), and, on a loopback viewer, ask for a
+# loopback name (a page whose domain re-resolves to 127.0.0.1, DNS rebinding, would otherwise pass as same-origin).
+_GUARDED_HOSTS: set[str] = set()
+
+
+def handshake_refusal(headers, served_host: str) -> str | None:
+    """Why a websocket handshake with these request headers is refused by a viewer serving on `served_host`; None
+    when it is accepted. Clients that send no Origin (scripts, not web pages) are accepted."""
+    from urllib.parse import urlsplit
+
+    try:
+        asked, origin = headers.get("Host", ""), headers.get("Origin")
+    except Exception:  # a header given twice (websockets raises MultipleValuesError)
+        return "a Host or Origin header given more than once"
+    try:
+        name = urlsplit("//" + asked).hostname or ""
+    except ValueError:
+        return f"a malformed Host header {asked[:80]!r}"
+    if is_loopback(served_host) and not is_loopback(name):
+        return f"this viewer serves on {served_host} only, not for the name {asked!r}"
+    if origin is not None and urlsplit(origin).netloc.lower() != asked.lower():
+        return f"a page from {origin} may not connect to this viewer (open http://{asked}/ itself)"
+    return None
+
+
+def _guard_websockets(host: str) -> None:
+    """Have every websocket server started on `host` (viser's) check handshake_refusal first: websockets' serve is
+    wrapped once per process, and applies the check only to the hosts viewers serve on."""
+    from http import HTTPStatus
+
+    import websockets.asyncio.server as ws_server
+
+    _GUARDED_HOSTS.add(host)
+    if getattr(ws_server.serve, "splatzoo_guard", False):
+        return
+    original = ws_server.serve
+
+    def serve(handler, host=None, port=None, *args, process_request=None, **kwargs):
+        if host in _GUARDED_HOSTS:
+            inner, served = process_request, host
+
+            def process_request(connection, request):
+                if request.headers.get("Upgrade", "").lower() == "websocket":
+                    why = handshake_refusal(request.headers, served)
+                    if why is not None:
+                        return connection.respond(HTTPStatus.FORBIDDEN, f"splatzoo viewer: {why}\n")
+                return inner(connection, request) if inner is not None else None
+        return original(handler, host, port, *args, process_request=process_request, **kwargs)
+
+    serve.splatzoo_guard = True
+    ws_server.serve = serve
+
+
 class Viewer:
     """A viser server showing `sources` (one or several models, sharing each browser's camera).
 
@@ -388,6 +444,7 @@ class Viewer:
             raise SplatzooError("the viewer needs viser: pip install 'splatzoo[viewer]'") from None
 
         check_address(self.host, self.port)
+        _guard_websockets(self.host)
         self.server = viser.ViserServer(host=self.host, port=self.port, label=self.title, verbose=False)
         actual = self.server.get_port()
         if self.port and actual != self.port:  # taken between the check and the bind

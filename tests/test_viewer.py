@@ -265,3 +265,43 @@ def test_training_can_be_watched(tmp_path):
         assert not (tmp_path / "two").exists()
     finally:
         watch.viewer.stop()
+
+
+def test_only_the_viewers_own_pages_open_its_websocket(compare_dir):
+    """A web page elsewhere (another Origin) or a re-resolved name (DNS rebinding) is refused at the handshake;
+    the viewer's own page and scripts without an Origin connect."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    viewer = view([compare_dir / "gabor"], port=0, backend="cpu")
+    try:
+        url = f"ws://127.0.0.1:{viewer.port}"
+        own = f"http://127.0.0.1:{viewer.port}"
+        protocol = ["viser-v" + __import__("viser").__version__]
+        rebound = f"ws://evil.example:{viewer.port}"  # a name that re-resolved to 127.0.0.1 (DNS rebinding)
+        for target, origin in ((url, "https://evil.example"), (url, "null"),
+                               (rebound, f"http://evil.example:{viewer.port}")):
+            sock = socket.create_connection(("127.0.0.1", viewer.port), timeout=10)
+            with pytest.raises(InvalidStatus) as e:
+                connect(target, sock=sock, origin=origin, subprotocols=protocol, open_timeout=10)
+            assert e.value.response.status_code == 403, (target, origin)
+        for origin in (own, None):
+            with connect(url, origin=origin, subprotocols=protocol, open_timeout=10) as ws:
+                assert ws.subprotocol == protocol[0]
+    finally:
+        viewer.stop()
+
+
+def test_handshake_rules():
+    from splatzoo.viewer import handshake_refusal
+
+    ok = {"Host": "127.0.0.1:8080", "Origin": "http://127.0.0.1:8080"}
+    assert handshake_refusal(ok, "127.0.0.1") is None
+    assert handshake_refusal({"Host": "localhost:8080", "Origin": "http://localhost:8080"}, "127.0.0.1") is None
+    assert handshake_refusal({"Host": "[::1]:8080"}, "::1") is None
+    assert "may not connect" in handshake_refusal({**ok, "Origin": "http://localhost:8080"}, "127.0.0.1")
+    assert "not for the name" in handshake_refusal({"Host": "rebound.example:8080",
+                                                    "Origin": "http://rebound.example:8080"}, "127.0.0.1")
+    # served to the network (--host 0.0.0.0): any name, but still only its own pages
+    assert handshake_refusal({"Host": "10.1.2.3:8080", "Origin": "http://10.1.2.3:8080"}, "0.0.0.0") is None
+    assert handshake_refusal({"Host": "10.1.2.3:8080", "Origin": "http://evil.example"}, "0.0.0.0") is not None
