@@ -30,6 +30,11 @@ from .types import Camera, Surfels
 MODES = ("rgb", "depth", "normal", "alpha", "surfels", "waves", "frequency")
 LAYOUTS = ("toggle", "side by side")
 SETTLE_SECONDS = 0.25  # still this long after a move: render at full size
+# The GUI's bounds, enforced on the server too: a client can send any value for any control
+MOVING_SIZES = (64, 1024)   # px, longest side while the camera moves
+FULL_SIZES = (128, 4096)    # px, longest side once it is still (and of snapshots)
+FOV_DEGREES = (1.0, 170.0)  # the browser camera's vertical field of view
+SNAPSHOT_SECONDS = 2.0      # at most one snapshot per browser in this time
 
 
 # --- cameras ------------------------------------------------------------------------------------------------------
@@ -549,8 +554,10 @@ class _Session:
         self.mode = gui.add_dropdown("render", MODES, initial_value="rgb")
         self.shown = gui.add_dropdown("model", labels, initial_value=labels[0], visible=len(labels) > 1)
         self.layout = gui.add_dropdown("layout", LAYOUTS, initial_value="toggle", visible=len(labels) > 1)
-        self.moving = gui.add_slider("moving size (px)", min=64, max=1024, step=32, initial_value=v.moving_size)
-        self.full = gui.add_slider("still size (px)", min=128, max=4096, step=64, initial_value=v.full_size)
+        self.moving = gui.add_slider("moving size (px)", min=MOVING_SIZES[0], max=MOVING_SIZES[1], step=32,
+                                     initial_value=v.moving_size)
+        self.full = gui.add_slider("still size (px)", min=FULL_SIZES[0], max=FULL_SIZES[1], step=64,
+                                   initial_value=v.full_size)
         self.cameras = gui.add_checkbox("training cameras (click one)", initial_value=True)
         self.cameras.on_update(lambda _: v.show_cameras(self.cameras.value))
         self.snapshot = gui.add_button("snapshot (PNG)")
@@ -614,18 +621,33 @@ class _Session:
 
     # -- rendering ---------------------------------------------------------------------------------------------
     def camera(self, longest: int) -> Camera | None:
+        """The browser's camera at `longest` px on its longer side, every client value brought into bounds (None
+        for a camera no render can be made of: no size, a non-finite pose)."""
         c = self.client.camera
-        width, height = int(c.image_width or 0), int(c.image_height or 0)
-        if width < 1 or height < 1:
+        try:
+            width, height = int(c.image_width or 0), int(c.image_height or 0)
+            fov = float(c.fov)
+            wxyz, position = np.asarray(c.wxyz, dtype=np.float64), np.asarray(c.position, dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
             return None
+        if width < 1 or height < 1 or not (np.isfinite(fov) and np.isfinite(wxyz).all() and np.isfinite(position).all()
+                                           and np.linalg.norm(wxyz) > 1e-6 and wxyz.shape == (4,)
+                                           and position.shape == (3,)):
+            return None
+        longest = int(min(max(longest, MOVING_SIZES[0]), FULL_SIZES[1]))
+        fov = min(max(fov, math.radians(FOV_DEGREES[0])), math.radians(FOV_DEGREES[1]))
         width, height = fit_size(width, height, longest)
-        return browser_camera(c.wxyz, c.position, c.fov, width, height)
+        return browser_camera(wxyz / np.linalg.norm(wxyz), position, fov, width, height)
+
+    def render_mode(self) -> str:
+        """The dropdown's mode, or rgb for a value the client made up (it also names snapshot files)."""
+        return self.mode.value if self.mode.value in MODES else "rgb"
 
     def _shown(self) -> list[Source]:
         sources = self.viewer.sources
         if self.layout.value == "side by side":
             return sources
-        return [next(s for s in sources if s.label == self.shown.value)]
+        return [next((s for s in sources if s.label == self.shown.value), sources[0])]
 
     def render(self, cam: Camera) -> np.ndarray | None:
         shown = self._shown()
@@ -634,7 +656,7 @@ class _Session:
             return None
         max_waves = max((getattr(m.config, "n_waves", 0) for m in models), default=0) or None
         with self.viewer.render_lock:
-            return render_layout(models, cam, self.mode.value, [s.background for s in shown],
+            return render_layout(models, cam, self.render_mode(), [s.background for s in shown],
                                  backend=self.viewer.backend, max_waves=max_waves)
 
     def _loop(self) -> None:
@@ -645,7 +667,7 @@ class _Session:
                 self.wake.wait(0.05)
                 self.wake.clear()
                 continue
-            key = (cam.world_to_camera.numpy().tobytes(), cam.K.numpy().tobytes(), self.mode.value,
+            key = (cam.world_to_camera.numpy().tobytes(), cam.K.numpy().tobytes(), self.render_mode(),
                    self.layout.value, self.shown.value, tuple(s.version for s in self._shown()))
             if key == (self.moving_key if moving else self.full_key):  # on screen already: wait for a change
                 self.wake.wait(SETTLE_SECONDS / 5 if moving else 0.5 if any(s.live for s in self.viewer.sources)
@@ -681,6 +703,10 @@ class _Session:
 
         from .io import atomic_path
 
+        now = time.monotonic()
+        if now - getattr(self, "_last_snapshot", -math.inf) < SNAPSHOT_SECONDS:
+            return  # a burst of presses (or a client's loop) makes one file, not many
+        self._last_snapshot = now
         cam = self.camera(int(self.full.value))
         if cam is None:
             return
@@ -688,7 +714,7 @@ class _Session:
         if image is None:
             return
         ok, png = cv2.imencode(".png", image[..., ::-1])
-        name = f"snapshot-{time.strftime('%Y%m%d-%H%M%S')}-{self.mode.value}.png"
+        name = f"snapshot-{time.strftime('%Y%m%d-%H%M%S')}-{self.render_mode()}.png"  # a known word: a safe name
         where = ""
         if self.viewer.snapshot_dir is not None:
             folder = Path(self.viewer.snapshot_dir)

@@ -305,3 +305,42 @@ def test_handshake_rules():
     # served to the network (--host 0.0.0.0): any name, but still only its own pages
     assert handshake_refusal({"Host": "10.1.2.3:8080", "Origin": "http://10.1.2.3:8080"}, "0.0.0.0") is None
     assert handshake_refusal({"Host": "10.1.2.3:8080", "Origin": "http://evil.example"}, "0.0.0.0") is not None
+
+
+def test_client_values_are_brought_into_bounds(compare_dir, tmp_path):
+    """Every GUI value arrives from the client unchecked: the still size, the camera's size and field of view,
+    a pose of NaNs, an unknown mode (which also names snapshot files) and a burst of snapshot presses."""
+    import math
+    from types import SimpleNamespace
+
+    from splatzoo.viewer import FULL_SIZES, _Session
+
+    session = object.__new__(_Session)
+    c = SimpleNamespace(image_width=1 << 20, image_height=1 << 20, fov=math.radians(179.9), wxyz=(2.0, 0, 0, 0),
+                        position=(0.0, 0.0, -1e6))
+    session.client = SimpleNamespace(camera=c)
+    cam = session.camera(8192)
+    assert max(cam.width, cam.height) == FULL_SIZES[1]
+    fov = 2 * math.degrees(math.atan(cam.height / 2 / float(cam.K[1, 1])))
+    assert fov <= 170.0 + 1e-6
+    assert torch.allclose(cam.R @ cam.R.T, torch.eye(3, dtype=cam.R.dtype), atol=1e-9)  # the quaternion normalised
+    c.position = (float("nan"), 0.0, 0.0)
+    assert session.camera(512) is None
+    c.position, c.wxyz = (0.0, 0.0, -3.0), (0.0, 0.0, 0.0, 0.0)
+    assert session.camera(512) is None
+
+    session.mode = SimpleNamespace(value="../../../escape")
+    assert session.render_mode() == "rgb"
+
+    sent = []
+    session.full = SimpleNamespace(value=256)
+    session.viewer = SimpleNamespace(snapshot_dir=tmp_path / "snaps")
+    c.wxyz = (1.0, 0.0, 0.0, 0.0)
+    c.image_width, c.image_height = 32, 24
+    session.render = lambda cam: np.zeros((cam.height, cam.width, 3), np.uint8)
+    session.client.send_file_download = lambda name, data: sent.append(name)
+    session.client.add_notification = lambda **kw: None
+    for _ in range(5):
+        session._snapshot()
+    assert len(sent) == 1 and sent[0].endswith("-rgb.png")
+    assert [p.name for p in (tmp_path / "snaps").iterdir()] == sent
