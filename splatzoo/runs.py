@@ -180,8 +180,14 @@ class Run:
         missing = [k for k in ("model", "model_config", "train", "data") if not isinstance(rec, dict) or k not in rec]
         if missing:
             raise SplatzooError(f"run configuration {self.config_path} lacks {', '.join(missing)}; {fix}")
-        if not isinstance(rec["train"], dict) or not isinstance(rec["model_config"], dict):
-            raise SplatzooError(f"run configuration {self.config_path} is malformed; {fix}")
+        kinds = {"model": (str,), "model_config": (dict,), "train": (dict,), "data": (str, type(None)),
+                 "scene_options": (dict, type(None))}
+        for key, types in kinds.items():
+            if key in rec and not isinstance(rec[key], types):
+                want = " or ".join("null" if t is type(None) else {str: "a string", dict: "an object"}[t]
+                                   for t in types)
+                raise SplatzooError(f"run configuration {self.config_path} is malformed: {key!r} must be {want}, "
+                                    f"not {type(rec[key]).__name__}; {fix}")
         return rec
 
     def train_config(self, record: dict | None = None) -> TrainConfig:

@@ -204,6 +204,8 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     for k, v in state.items():
         if not isinstance(k, str) or not isinstance(v, torch.Tensor) or v.layout != torch.strided:
             raise fail(f"state entry {k!r} is a {type(v).__name__}, not a dense tensor")
+        if v.device.type != "cpu":  # read with map_location="cpu": only a meta tensor (no data) is left elsewhere
+            raise fail(f"state entry {k!r} holds no data (a {v.device.type} tensor)")
         if k in params and not v.is_floating_point():
             raise fail(f"parameter {k} holds {v.dtype} values; parameters are floating point")
         if v.is_floating_point() and not bool(torch.isfinite(v).all()):

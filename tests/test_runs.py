@@ -2,6 +2,7 @@
 interrupts (SIGINT, SIGTERM, SIGKILL) that lose nothing, damaged files named clearly."""
 import errno
 import json
+import re
 import os
 import random
 import signal
@@ -453,3 +454,25 @@ def test_a_run_on_read_only_media_is_evaluated_rendered_and_meshed_elsewhere(tin
         r = runner.invoke(app, args)
         assert r.exit_code != 0 and "is read-only" in str(r.exception) and option in str(r.exception), r.output
     assert sorted(p.name for p in run.iterdir()) == before
+
+
+def test_hand_edited_config_and_meta_tensors_are_named(tiny_data, tmp_path):
+    """config.json with a number for data or a string for scene_options, and a model.pt holding a meta tensor
+    (no data): named errors instead of TypeError, ValueError or RuntimeError tracebacks."""
+    run = tmp_path / "run"
+    quick_train(tiny_data, run)
+    good = (run / "config.json").read_text()
+    for key, value, want in (("data", 5, "'data' must be a string or null, not int"),
+                             ("scene_options", "x", "'scene_options' must be an object or null, not str"),
+                             ("train", [], "'train' must be an object, not list")):
+        (run / "config.json").write_text(json.dumps({**json.loads(good), key: value}))
+        with pytest.raises(SplatzooError, match=re.escape(want)):
+            Run(run).load("cpu")
+    (run / "config.json").write_text(good)
+    from splatzoo import load_model
+
+    state = torch.load(run / "model.pt", weights_only=True)
+    state["state"]["means"] = torch.empty(state["state"]["means"].shape, device="meta")
+    torch.save(state, tmp_path / "meta.pt")
+    with pytest.raises(SplatzooError, match="state entry 'means' holds no data"):
+        load_model(tmp_path / "meta.pt")
