@@ -689,11 +689,16 @@ def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, re
     # The ranks meet through a file (no listening store socket) and talk over the loopback interface only:
     # torch.distributed has no authentication, so nothing of a one-machine run may listen on the network.
     rendezvous = Path(tempfile.mkdtemp(prefix="splatzoo-ranks-")) / "store"
+    # each rank's heartbeat (a thread beating even while the rank computes or waits in a collective): a rank that
+    # stops beating was stopped (SIGSTOP) or hangs, and the others would wait for it until gloo's 10-minute timeout
+    beats = mp.get_context("spawn").Array("d", cfg.nproc, lock=False)
     ctx = mp.start_processes(_rank_main, nprocs=cfg.nproc, join=False, start_method="spawn",
-                             args=(cfg.nproc, str(rendezvous), str(run.path), scene, model,
+                             args=(cfg.nproc, str(rendezvous), beats, str(run.path), scene, model,
                                    dataclasses.asdict(model_config), dataclasses.asdict(cfg), resume, progress,
                                    evaluate_at_end, stop_after))
     pids = [p.pid for p in ctx.processes]
+    silent_after = float(os.environ.get("SPLATZOO_RANK_TIMEOUT", RANK_TIMEOUT_S))
+    started = time.time()
 
     def forward(signum, frame):
         for pid in pids:
@@ -705,8 +710,18 @@ def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, re
     previous = {s: signal.signal(s, forward if s == signal.SIGTERM else signal.SIG_IGN)
                 for s in (signal.SIGINT, signal.SIGTERM)} if threading.current_thread() is threading.main_thread() else {}
     try:
-        while not ctx.join():
-            pass
+        while not ctx.join(timeout=1.0):
+            now = time.time()
+            for rank, beat in enumerate(beats[:]):
+                if now - (beat or started) > silent_after:  # no beat yet: counted from the spawn
+                    for pid in pids:
+                        try:
+                            os.kill(pid, signal.SIGKILL)
+                        except ProcessLookupError:
+                            pass
+                    raise SplatzooError(f"rank {rank} of {cfg.nproc} stopped responding (no heartbeat for "
+                                        f"{silent_after:.0f} s: stopped, or hung); the run was ended (its last "
+                                        f"checkpoint is kept; resume with: splatzoo train --resume --out {run.path})")
     except mp.ProcessExitedException as e:
         code = e.exit_code
         if code in (130, 143):
@@ -740,7 +755,22 @@ def loopback_interface() -> str | None:
         return None
 
 
-def _rank_main(rank: int, world: int, rendezvous: str, run_path: str, scene, model: str, model_config: dict,
+RANK_TIMEOUT_S = 60.0  # a rank whose heartbeat is older than this ends an --nproc run ($SPLATZOO_RANK_TIMEOUT)
+HEARTBEAT_S = 2.0
+
+
+def _beat(beats, rank: int) -> None:
+    """Write this rank's heartbeat every HEARTBEAT_S seconds, from a daemon thread: it keeps beating while the rank
+    computes or waits for the others, and stops only when the whole process is stopped or gone."""
+    def run():
+        while True:
+            beats[rank] = time.time()
+            time.sleep(HEARTBEAT_S)
+
+    threading.Thread(target=run, name="splatzoo-heartbeat", daemon=True).start()
+
+
+def _rank_main(rank: int, world: int, rendezvous: str, beats, run_path: str, scene, model: str, model_config: dict,
                cfg: dict, resume: bool, progress: bool, evaluate_at_end: bool, stop_after: int | None) -> None:
     """One rank of `_spawn_ranks`: join the process group, train, and exit with the shell's code for how it ended."""
     from datetime import timedelta
@@ -748,6 +778,8 @@ def _rank_main(rank: int, world: int, rendezvous: str, run_path: str, scene, mod
     import torch.distributed as dist
 
     from .zoo import make_config
+
+    _beat(beats, rank)
 
     cfg = TrainConfig(**cfg)
     cuda = cfg.backend == "cuda" or (cfg.backend == "auto" and torch.cuda.is_available())

@@ -121,12 +121,12 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def _start(data, out):
+def _start(data, out, iterations=150, **env):
     args = [sys.executable, "-m", "splatzoo.cli", "train", str(data), "--model", "gabor", "--out", str(out),
-            "--nproc", "2", "--iterations", "150", "--num-primitives", "150", "--backend", "cpu",
+            "--nproc", "2", "--iterations", str(iterations), "--num-primitives", "150", "--backend", "cpu",
             "--checkpoint-every", "10"]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", **env})
     deadline = time.monotonic() + 180
     while not (out / "checkpoint.pt").exists():
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[0]
@@ -170,6 +170,32 @@ def test_a_dying_rank_ends_the_run_clearly(tiny_data, tmp_path):
     assert (run / "checkpoint.pt").exists()
     with pytest.raises(SplatzooError, match="nproc"):
         train(tiny_data, "gabor", {}, {"nproc": 3}, run, resume=True, progress=False)
+
+
+def test_a_stopped_rank_ends_the_run_within_the_heartbeat_timeout(tiny_data, tmp_path):
+    """A rank stopped with SIGSTOP (alive, silent) used to keep the others waiting for gloo's 10-minute timeout;
+    its missing heartbeat ends the run (here after 6 s) with the usual message, the last checkpoint kept."""
+    run = tmp_path / "run"
+    proc = _start(tiny_data, run, iterations=100000, SPLATZOO_RANK_TIMEOUT="6")
+    ranks = []
+    deadline = time.monotonic() + 60
+    while len(ranks) < 2 and time.monotonic() < deadline:
+        ranks = [p for p in _children(proc.pid) if "spawn_main" in Path(f"/proc/{p}/cmdline").read_text()]
+        time.sleep(0.05)
+    stopped = max(ranks)
+    t0 = time.monotonic()
+    os.kill(stopped, signal.SIGSTOP)
+    try:
+        output, _ = proc.communicate(timeout=120)
+    finally:
+        for pid in ranks:  # nothing left behind, stopped or not
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    assert time.monotonic() - t0 < 60
+    assert proc.returncode == 2 and "stopped responding" in output and "--resume" in output, output
+    assert (run / "checkpoint.pt").exists()
 
 
 def _listening_addresses(pids: set[int]) -> set[str]:
