@@ -545,10 +545,19 @@ def test_a_first_build_announces_itself_and_a_cached_one_is_silent(monkeypatch, 
     assert capsys.readouterr().err == "" and len(built) == 2
 
 
-def test_the_build_cache_is_keyed_by_the_compiler(monkeypatch):
+def test_the_build_cache_is_keyed_by_the_compiler_and_ninja(monkeypatch):
+    """Two ninjas (a venv's and the system's) record different command hashes and rebuilt each other's library,
+    silently, each time the other ran: each gets a build of its own."""
     a = native._build_name("cpu")
     monkeypatch.setattr(native, "_compiler_id", lambda kind: "c++ (another compiler) 99.1")
     assert native._build_name("cpu") != a
+    monkeypatch.undo()
+    assert native._build_name("cpu") == a
+    assert "ninja" in native._ninja_id() and any(ch.isdigit() for ch in native._ninja_id())
+    monkeypatch.setattr(native, "_ninja_id", lambda: "/usr/bin/ninja 1.11.1")
+    b = native._build_name("cpu")
+    monkeypatch.setattr(native, "_ninja_id", lambda: "/venv/bin/ninja 1.13.0.git.kitware.jobserver-pipe-1")
+    assert native._build_name("cpu") not in (a, b)
 
 
 def test_a_camera_too_large_to_index_is_refused_not_a_crash(any_backend):

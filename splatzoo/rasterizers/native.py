@@ -84,6 +84,20 @@ def build_flags() -> list[str]:
 
 
 @functools.lru_cache(maxsize=None)
+def _ninja_id() -> str:
+    """The ninja that torch's builder runs (the first on PATH) and its version: part of the cache key, because two
+    ninjas record different command hashes and each would rebuild (and replace) the other's library."""
+    import shutil
+
+    path = shutil.which("ninja") or "ninja: not found"
+    try:
+        version = subprocess.run([path, "--version"], capture_output=True, text=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        version = "?"
+    return f"{os.path.realpath(path)} {version}"
+
+
+@functools.lru_cache(maxsize=None)
 def _compiler_id(kind: str) -> str:
     """The compilers' version lines (C++, and nvcc for CUDA): part of the cache key, so that a compiler upgrade or
     another checkout's toolchain never reuses or overwrites a build made with a different one."""
@@ -101,6 +115,7 @@ def _compiler_id(kind: str) -> str:
 def _build_name(kind: str) -> str:
     h = hashlib.sha1()
     h.update(_compiler_id(kind).encode())
+    h.update(_ninja_id().encode())
     for name in (CUDA_SOURCES if kind == "cuda" else CPU_SOURCES) + HEADERS:
         h.update((CSRC / name).read_bytes())
     h.update(" ".join(build_flags()).encode())
