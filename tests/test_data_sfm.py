@@ -89,3 +89,18 @@ def test_sfm_in_place_adds_a_model_next_to_the_images(tmp_path):
     assert any("registered" in m for m in messages)
     with pytest.raises(DataError, match="already exists"):
         run_sfm(data / "images", data, progress=False)
+
+
+def test_a_given_focal_is_held_in_every_pass(tmp_path):
+    """`--focal F` fixes the focal length: SfM does not refine it away in the first mapping pass."""
+    from splatzoo.data import run_sfm
+
+    data = make_synthetic_scene("boots", tmp_path / "d", views=12, width=160, height=160, points=100)
+    true_f = float(synthetic_cameras("boots", 12, 160, 160)[0].K[0, 0])
+    given = round(true_f * 1.05, 1)  # a little off, as a focal from a spec sheet is
+    res = run_sfm(data / "images", tmp_path / "out", progress=False, num_threads=1, focal=given,
+                  camera_model="SIMPLE_PINHOLE")
+    rec = pycolmap.Reconstruction(tmp_path / "out" / "sparse" / "0")
+    assert res.num_registered >= 8
+    for cam in rec.cameras.values():
+        assert abs(cam.mean_focal_length() - given) < 1e-6, (cam.mean_focal_length(), given)
