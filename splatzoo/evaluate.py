@@ -179,16 +179,10 @@ def save_test_renders(model, scene, out_dir, *, backend: str = "auto", split: st
 
 def orbit_cameras(cameras: list[Camera], frames: int = 60) -> list[Camera]:
     """Cameras on a circle through the mean camera height, looking at the point the cameras look at most."""
+    from .geometry import look_at_point
+
     centers = torch.stack([c.center.double() for c in cameras])
-    dirs = torch.stack([c.R[2].double() for c in cameras])  # optical axes in world coordinates
-    # the point closest to every optical axis (least squares)
-    A = torch.zeros(3, 3, dtype=torch.float64)
-    b = torch.zeros(3, dtype=torch.float64)
-    for c, d in zip(centers, dirs):
-        P = torch.eye(3, dtype=torch.float64) - torch.outer(d, d)
-        A += P
-        b += P @ c
-    target = torch.linalg.lstsq(A, b).solution
+    target = look_at_point(cameras)
     up = -torch.stack([c.R[1].double() for c in cameras]).mean(0)  # image up (-y) averaged
     up = up / up.norm()
     rel = centers - target

@@ -81,3 +81,17 @@ def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tens
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
     return (rgb - 0.5) / SH_C0
+
+
+def look_at_point(cameras) -> torch.Tensor:
+    """The point closest to every camera's optical axis, least squares [3] (float64): what a set of cameras looks
+    at (the object of an orbit, the middle of a forward-facing capture)."""
+    centers = torch.stack([c.center.double() for c in cameras])
+    dirs = torch.stack([c.R[2].double() for c in cameras])  # optical axes in world coordinates
+    A = torch.zeros(3, 3, dtype=torch.float64)
+    b = torch.zeros(3, dtype=torch.float64)
+    for c, d in zip(centers, dirs):
+        P = torch.eye(3, dtype=torch.float64) - torch.outer(d, d)
+        A += P
+        b += P @ c
+    return torch.linalg.lstsq(A, b).solution

@@ -327,3 +327,36 @@ def test_crafted_transforms_and_huge_image_headers_are_named(tmp_path):
     # the header is read (a real photo can be this large); the body then fails to decode, and says so
     with pytest.raises(DataError, match="r_0.png is unreadable or corrupt"):
         load_scene(root)
+
+
+def test_transforms_point_cloud_and_random_start_follow_the_cameras(tmp_path):
+    """nerfstudio's ply_file_path is the initial point cloud; without any, the random start is a cube around what
+    the cameras look at, sized to their distance (NeRF-synthetic's [-1.3, 1.3]^3 at 4.03), and it is said."""
+    from splatzoo.geometry import look_at_point
+
+    root = _blender(tmp_path / "b", n=3)
+    scene = load_scene(root)
+    cams = [v.camera for v in scene.views]
+    centre = look_at_point(cams).float()
+    distance = float(torch.stack([(c.center.double() - centre.double()).norm() for c in cams]).mean())
+    half = (scene.points - centre).abs().max()
+    assert abs(float(half) - 1.3 / 4.0311 * distance) < 0.01 * distance
+    assert any("random points" in n for n in scene.notes)
+    # the same capture ten times larger starts from a cloud ten times larger
+    big = _blender(tmp_path / "big", n=3)
+    _edit(big, lambda meta: [f.update(transform_matrix=(np.asarray(f["transform_matrix"]) @ np.diag([1, 1, 1, 1.0])
+                                                         * np.array([[1, 1, 1, 10]] * 3 + [[0, 0, 0, 1]])).tolist())
+                             for f in meta["frames"]])
+    assert float((load_scene(big).points - centre * 10).abs().max()) == pytest.approx(10 * float(half), rel=0.01)
+    # a named cloud wins, and a missing one is named
+    pts = np.array([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]], np.float32)
+    ply = root / "sparse_pc.ply"
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\nproperty float x\nproperty float y\n" \
+             "property float z\nend_header\n"
+    ply.write_bytes(header.encode() + pts.tobytes())
+    _edit(root, lambda meta: meta.update(ply_file_path="sparse_pc.ply"))
+    scene = load_scene(root)
+    assert torch.allclose(scene.points, torch.from_numpy(pts)) and not any("random" in n for n in scene.notes)
+    _edit(root, lambda meta: meta.update(ply_file_path="gone.ply"))
+    with pytest.raises(DataError, match="gone.ply \\(ply_file_path\\), which does not exist"):
+        load_scene(root)

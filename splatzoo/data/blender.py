@@ -4,9 +4,11 @@ Poses are camera-to-world in OpenGL axes (+y up, +z backwards); we flip the y an
 OpenCV. Intrinsics come from camera_angle_x (and camera_angle_y), or from fl_x/fl_y/cx/cy when given
 (instant-ngp / nerfstudio style). RGBA images are composited over the scene background.
 
-Initial points: points3d.ply in the dataset folder if present (x, y, z and optional red, green, blue);
-otherwise RANDOM_POINTS points drawn uniformly in the box [-1.3, 1.3]^3 with random colours (seeded, so
-loading twice gives the same cloud), the usual start for these object-centred scenes.
+Initial points: the PLY named by the transforms file's ply_file_path (nerfstudio), else points3d.ply in the
+dataset folder if present (x, y, z and optional red, green, blue); otherwise, as a stated fallback, RANDOM_POINTS
+points with random colours (seeded, so loading twice gives the same cloud) drawn uniformly in a cube around the point
+the cameras look at, of half-size RANDOM_BOX_PER_DISTANCE x their mean distance to it: [-1.3, 1.3]^3 for the
+NeRF-synthetic scenes (cameras 4.03 from the origin), and the same proportion at any other scale.
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_
                     scale_camera, split_views, target_scale)
 
 RANDOM_POINTS = 10_000
-RANDOM_BOX = 1.3
+RANDOM_BOX_PER_DISTANCE = 1.3 / 4.0311  # NeRF-synthetic's [-1.3, 1.3]^3 box for its cameras 4.03 from the origin
 _OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -254,7 +256,10 @@ def load_blender(root, *, resolution: int | None = None, max_width: int | None =
     else:
         views = _views_from(root, root / "transforms.json", background, masks, resolution, max_width)
         train, test = split_views(views, test_every, root)
-    ply = next((p for p in (root / "points3d.ply", root / "points3D.ply") if p.is_file()), None)
+    notes = []
+    ply = _named_ply(root, train_file if train_file.is_file() else root / "transforms.json")
+    if ply is None:
+        ply = next((p for p in (root / "points3d.ply", root / "points3D.ply") if p.is_file()), None)
     if ply is not None:
         xyz, rgb = read_ply_points(ply)
         if len(xyz) == 0:
@@ -262,13 +267,46 @@ def load_blender(root, *, resolution: int | None = None, max_width: int | None =
         if rgb is None:
             rgb = np.full_like(xyz, 0.5)
     else:
-        g = np.random.default_rng(0)
-        xyz = (g.random((RANDOM_POINTS, 3)) * 2 - 1).astype(np.float32) * RANDOM_BOX
-        rgb = g.random((RANDOM_POINTS, 3)).astype(np.float32)
+        xyz, rgb, note = _random_points([v.camera for v in train + test])
+        notes.append(note)
     points, colors = torch.from_numpy(np.ascontiguousarray(xyz)), torch.from_numpy(np.ascontiguousarray(rgb))
     return Scene(name=root.resolve().name, root=root, train=train, test=test, points=points, colors=colors,
                  extent=camera_extent([v.camera for v in train], points), background=tuple(background),
-                 mesh_path=mesh_path_of(root))
+                 mesh_path=mesh_path_of(root), notes=notes)
+
+
+def _named_ply(root: Path, meta_path: Path) -> Path | None:
+    """The point cloud the transforms file names (nerfstudio's ply_file_path, relative to the dataset), if any."""
+    name = _read_json(meta_path).get("ply_file_path")
+    if name is None:
+        return None
+    if not isinstance(name, str) or not name:
+        raise DataError(f"{meta_path}: ply_file_path must be a path relative to {root}, not {name!r:.60}")
+    path = root / name
+    try:
+        found = path.is_file()
+    except OSError as e:
+        raise DataError(f"{meta_path}: ply_file_path {name[:120]!r} cannot be looked up ({e.strerror or e})") from None
+    if not found:
+        raise DataError(f"{meta_path} names the point cloud {path} (ply_file_path), which does not exist; restore it "
+                        "or remove the key to start from random points")
+    return path
+
+
+def _random_points(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, str]:
+    """RANDOM_POINTS seeded random points and colours in a cube around what the cameras look at, sized to them."""
+    from ..geometry import look_at_point
+
+    centre = look_at_point(cameras) if len(cameras) > 1 else torch.zeros(3, dtype=torch.float64)
+    distance = float(torch.stack([(c.center.double() - centre).norm() for c in cameras]).mean())
+    half = RANDOM_BOX_PER_DISTANCE * distance if math.isfinite(distance) and distance > 0 else 1.3
+    g = np.random.default_rng(0)
+    xyz = ((g.random((RANDOM_POINTS, 3)) * 2 - 1) * half + centre.numpy()).astype(np.float32)
+    rgb = g.random((RANDOM_POINTS, 3)).astype(np.float32)
+    where = ", ".join(f"{x:.3g}" for x in centre.tolist())
+    return xyz, rgb, (f"no point cloud (points3d.ply or the transforms file's ply_file_path): starting from "
+                      f"{RANDOM_POINTS} random points in a cube of half-size {half:.3g} around ({where}), what the "
+                      "cameras look at")
 
 
 def is_blender(root: Path) -> bool:
