@@ -63,8 +63,8 @@ def sfm_command(
                                      "undistorted when the dataset is loaded."),
     focal: Optional[float] = typer.Option(None, "--focal", metavar="PIXELS",
                                           help="Focal length of the photos in pixels, if known (lens mm / sensor width "
-                                          "mm x image width): SfM starts from it instead of EXIF or 1.2 x the longer "
-                                          "side, and the checks compare the fit with it."),
+                                          "mm x image width): SfM holds it fixed in every pass, instead of starting "
+                                          "from EXIF or 1.2 x the longer side and refining."),
     retry: bool = typer.Option(True, "--retry/--no-retry", help="When the fit looks implausible, map again with "
                                "SIMPLE_PINHOLE (focal held at --focal if given) and keep the better fit."),
     report: bool = typer.Option(True, "--report/--no-report", help="Write sfm_report.png (cameras and points seen "
