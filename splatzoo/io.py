@@ -6,6 +6,7 @@ import errno
 import json
 import math
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -76,8 +77,16 @@ def read_torch(path, what: str, fix: str) -> object:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types here: UnpicklingError, RuntimeError, EOFError, ...
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise SplatzooError(f"{what} {path} cannot be read safely ({reason[:200]}); {fix}") from None
+        text = str(e).strip()
+        if "Weights only load failed" in text:
+            # torch's own advice (load with weights_only=False) would run whatever code the file carries: name only
+            # what it holds that is not data
+            found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+            reason = (f"it holds Python objects that are not tensors or plain containers"
+                      f"{f' ({found.group(1)})' if found else ''}, and unpickling them could run code from the file")
+        else:
+            reason = text.splitlines()[0][:200] if text else type(e).__name__
+        raise SplatzooError(f"{what} {path} cannot be read safely ({reason}); {fix}") from None
 
 
 def write_text(path, text: str) -> None:
