@@ -6,6 +6,7 @@ import math
 import torch
 
 from splatzoo import Camera, Surfels
+from splatzoo.types import MAX_SCALE, MAX_WAVE_NUMBER
 from splatzoo.geometry import normals_to_quats
 
 
@@ -54,9 +55,12 @@ def extreme_cases(dtype=torch.float32) -> list[tuple[str, Surfels, Camera]]:
     for s in (1e-6, 1e-3, 1.0, 1e3):
         cases.append((f"scale{s:g}", single_surfel(scale=(s, s), dtype=dtype), cam))
     cases.append(("needle", single_surfel(scale=(1e-6, 1.0), dtype=dtype), cam))
-    for f in (1.0, 100.0, 1e3):
+    for f in (1.0, 100.0):
         w = 2 * math.pi * f
         cases.append((f"freq{f:g}", single_surfel(k_vectors=[(w, 0.0), (0.0, w), (w, w)], dtype=dtype), cam))
+    w = MAX_WAVE_NUMBER  # the highest wave number a surfel may have (types.py)
+    cases.append(("freq_max", single_surfel(k_vectors=[(w, 0.0), (0.0, w), (-w, w)], dtype=dtype), cam))
+    cases.append(("scale_max", single_surfel(scale=(MAX_SCALE, MAX_SCALE), dtype=dtype), cam))
     for o in (0.0, 1.0):
         cases.append((f"opacity{o:g}", single_surfel(opacity=o, dtype=dtype), cam))
     # the camera is at z = -3 looking along +z: depth = z + 3

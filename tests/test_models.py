@@ -45,6 +45,30 @@ def test_model_conformance(name, tmp_path):
         assert torch.equal(v, getattr(b, k)), k
 
 
+@pytest.mark.parametrize("name", ["2dgs", "gabor"])
+def test_parameters_beyond_the_valid_range_render_with_finite_gradients(name):
+    """A crafted or diverged log-scale of 88 (exp overflows float) or a wave frequency of 1e20 is held at the valid
+    range by the parametrisation (types.MAX_SCALE, MAX_WAVE_NUMBER): the model renders on every backend with finite
+    gradients instead of NaN everywhere."""
+    from splatzoo.types import MAX_SCALE, MAX_WAVE_NUMBER
+
+    pts, cols = point_cloud()
+    model = splatzoo.create_model(name, pts, cols, seed=1)
+    with torch.no_grad():
+        model.log_scales[0] = 88.0
+        if name == "gabor":
+            model.wave_freqs[1] = 1e20
+    s = model.surfels(CAM)
+    assert float(s.scales.max()) == pytest.approx(MAX_SCALE, rel=1e-4)
+    assert s.wave_vectors.numel() == 0 or float(s.wave_vectors.abs().max()) <= MAX_WAVE_NUMBER
+    for backend in ("reference", "cpu"):
+        model.zero_grad()
+        out = model.render(CAM, backend=backend)
+        (out.rgb.sum() + out.alpha.sum()).backward()
+        for pname, p in model.named_parameters():
+            assert p.grad is None or torch.isfinite(p.grad).all(), f"{backend}: gradient of {pname} not finite"
+
+
 @pytest.mark.parametrize("name", splatzoo.list_models())
 def test_model_render_uses_its_own_settings(name, tmp_path):
     """model.render is the one render call: the model's raster settings (the pixel-footprint filter it was trained

@@ -21,7 +21,7 @@ constexpr SurfelFieldInfo SURFEL_FIELD_INFO[NUM_SURFEL_FIELDS] = {
     {"means", Role::geometry, 1, {3, 0, 0}},  // centre in world space
     {"quats", Role::geometry, 1, {4, 0, 0}},  // rotation (w, x, y, z), need not be normalised
     {"scales", Role::geometry, 1, {2, 0, 0}},  // linear sigma along u, v
-    {"opacities", Role::opacity, 0, {0, 0, 0}},  // peak opacity in [0, 1]
+    {"opacities", Role::opacity, 0, {0, 0, 0}},  // peak opacity
     {"base_color", Role::appearance, 1, {3, 0, 0}},  // view-evaluated colour c0
     {"wave_vectors", Role::appearance, 2, {SZ_K, 2, 0}},  // k_k, radians per sigma
     {"wave_phases", Role::appearance, 1, {SZ_K, 0, 0}},  // phi_k, radians

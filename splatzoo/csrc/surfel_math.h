@@ -432,19 +432,50 @@ SZ_HD void project_backward(const CameraArgs<S>& cam, const S* mean, const S* qu
 // h_x = x m3 - m1 and h_y = y m3 - m2, and c = h_x x h_y = x (m2 x m3) + y (m3 x m1) + m1 x m2: affine in (x, y).
 // Expanding it around the projected centre (in double, once per surfel) turns the per-pixel cross product into
 // 6 multiply-adds and removes the cancellation the per-pixel form suffers far from the image origin.
+// The pixel planes' coefficients in double, c(x, y) = (x - cx) A + (y - cy) B + C with C centred, and the power of
+// two `scale` that brings the largest of them into [0.5, 1). The pixels use c only through ratios (u = c0 / c2,
+// J = N / c2^2, the hit and linearisation tests) that do not change when A, B, C are scaled together, and a power of
+// two changes no rounding: the result is the same bit for bit, but the anti-aliased footprint's products (A0 C2, ...)
+// of a surfel some 1e9 px across no longer overflow float. scale is 1 where the coefficients are 0 or not finite.
+struct PlaneCoeffs {
+    double A[3], B[3], C[3], scale;
+};
+template <class S>
+SZ_HD PlaneCoeffs plane_coeffs(const S* T9, const S* center) {
+    const double m1[3] = {double(T9[0]), double(T9[1]), double(T9[2])};
+    const double m2[3] = {double(T9[3]), double(T9[4]), double(T9[5])};
+    const double m3[3] = {double(T9[6]), double(T9[7]), double(T9[8])};
+    PlaneCoeffs p;
+    p.A[0] = m2[1] * m3[2] - m2[2] * m3[1]; p.A[1] = m2[2] * m3[0] - m2[0] * m3[2]; p.A[2] = m2[0] * m3[1] - m2[1] * m3[0];
+    p.B[0] = m3[1] * m1[2] - m3[2] * m1[1]; p.B[1] = m3[2] * m1[0] - m3[0] * m1[2]; p.B[2] = m3[0] * m1[1] - m3[1] * m1[0];
+    const double cx = double(center[0]), cy = double(center[1]);
+    double C[3] = {m1[1] * m2[2] - m1[2] * m2[1], m1[2] * m2[0] - m1[0] * m2[2], m1[0] * m2[1] - m1[1] * m2[0]};
+    double top = 0.0;
+    for (int i = 0; i < 3; ++i) {
+        p.C[i] = C[i] + cx * p.A[i] + cy * p.B[i];
+        top = smax(top, smax(sabs(p.A[i]), smax(sabs(p.B[i]), sabs(p.C[i]))));
+    }
+    p.scale = 1.0;
+    if (top > 0.0 && top < INFINITY) {  // false for NaN too
+        int e;
+        frexp(top, &e);
+        p.scale = ldexp(1.0, -e);
+    }
+    return p;
+}
+
+// T9: rows m1, m2, m3 of M = K [R s_u t_u | R s_v t_v | R p + t] (row-major 3x3). The pixel planes are
+// h_x = x m3 - m1 and h_y = y m3 - m2, and c = h_x x h_y = x (m2 x m3) + y (m3 x m1) + m1 x m2: affine in (x, y).
+// Expanding it around the projected centre (in double, once per surfel) turns the per-pixel cross product into
+// 6 multiply-adds and removes the cancellation the per-pixel form suffers far from the image origin. A, B, C are
+// stored scaled (plane_coeffs); finalize_grads scales their gradients back.
 template <class S>
 SZ_HD void prepare_geom(const Settings& st, const S* T9, const S* center, S depth, S opacity, Geom<S>& g) {
-    double m1[3] = {double(T9[0]), double(T9[1]), double(T9[2])};
-    double m2[3] = {double(T9[3]), double(T9[4]), double(T9[5])};
-    double m3[3] = {double(T9[6]), double(T9[7]), double(T9[8])};
-    double A[3] = {m2[1] * m3[2] - m2[2] * m3[1], m2[2] * m3[0] - m2[0] * m3[2], m2[0] * m3[1] - m2[1] * m3[0]};
-    double B[3] = {m3[1] * m1[2] - m3[2] * m1[1], m3[2] * m1[0] - m3[0] * m1[2], m3[0] * m1[1] - m3[1] * m1[0]};
-    double C[3] = {m1[1] * m2[2] - m1[2] * m2[1], m1[2] * m2[0] - m1[0] * m2[2], m1[0] * m2[1] - m1[1] * m2[0]};
-    double cx = double(center[0]), cy = double(center[1]);
+    const PlaneCoeffs p = plane_coeffs(T9, center);
     for (int i = 0; i < 3; ++i) {
-        g.A[i] = S(A[i]);
-        g.B[i] = S(B[i]);
-        g.C[i] = S(C[i] + cx * A[i] + cy * B[i]);
+        g.A[i] = S(p.A[i] * p.scale);
+        g.B[i] = S(p.B[i] * p.scale);
+        g.C[i] = S(p.C[i] * p.scale);
         g.m3[i] = T9[6 + i];
     }
     g.cx = center[0];
@@ -942,13 +973,15 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
                           S* v_wa) {
     double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
     double cx = double(center[0]), cy = double(center[1]);
+    // the slots hold gradients of the scaled A, B, C the pixels saw (prepare_geom)
+    const double scale = plane_coeffs(T9, center).scale;
     for (int i = 0; i < 3; ++i) {
         m1[i] = double(T9[i]);
         m2[i] = double(T9[3 + i]);
         m3[i] = double(T9[6 + i]);
-        v_C[i] = double(Gs[G_C + i]);
-        v_A[i] = double(Gs[G_CX + i]) + cx * v_C[i] + double(Gs[G_A + i]);
-        v_B[i] = double(Gs[G_CY + i]) + cy * v_C[i] + double(Gs[G_B + i]);
+        v_C[i] = double(Gs[G_C + i]) * scale;
+        v_A[i] = (double(Gs[G_CX + i]) + double(Gs[G_A + i])) * scale + cx * v_C[i];
+        v_B[i] = (double(Gs[G_CY + i]) + double(Gs[G_B + i])) * scale + cy * v_C[i];
     }
     double v_cx = double(Gs[G_CENTER]), v_cy = double(Gs[G_CENTER + 1]);
     // anti-aliased, the gains exp(-k^T b k / 2) with b the blur the pixels used (Geom::blur, rounded to S):

@@ -11,7 +11,10 @@ from torch import nn
 
 from ..errors import ShapeError, SplatzooError
 from ..geometry import normals_to_quats
-from ..types import Camera, RenderOutput, Surfels
+from ..types import MAX_SCALE, Camera, RenderOutput, Surfels
+
+# geometry(): the scales' upper limit, as a log-scale (a hair below MAX_SCALE: float's exp may round up)
+LOG_MAX_SCALE = math.log(MAX_SCALE) - 1e-5
 
 
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
@@ -237,8 +240,10 @@ class SurfelModel(SplatModel):
         self.logit_opacity.fill_(math.log(initial_opacity / (1 - initial_opacity)))
 
     def geometry(self) -> dict[str, torch.Tensor]:
-        """Surfels geometry fields in activated form."""
-        return {"means": self.means, "quats": self.quats, "scales": torch.exp(self.log_scales),
+        """Surfels geometry fields in activated form. The scales stop at MAX_SCALE (types.py: the range where every
+        rasterizer agrees), so a crafted or diverged log-scale (88 would overflow float) renders a huge surfel with
+        finite gradients."""
+        return {"means": self.means, "quats": self.quats, "scales": torch.exp(self.log_scales.clamp(max=LOG_MAX_SCALE)),
                 "opacities": torch.sigmoid(self.logit_opacity)}
 
     def geometry_groups(self, scene_extent: float) -> list[dict]:

@@ -40,7 +40,7 @@ from torch import nn
 
 from ..errors import ShapeError
 from ..geometry import SH_C0, eval_sh, num_sh_bases
-from ..types import Camera, Surfels
+from ..types import MAX_WAVE_NUMBER, Camera, Surfels
 from .base import SurfelModel, view_directions
 
 INIT_OFFSET = 0.05  # init="surfel": half the colour difference cA - cB, per channel, at most
@@ -260,7 +260,9 @@ class GaborModel(SurfelModel):
             coeffs = torch.cat([self.sh_rest.new_zeros(self.sh_rest.shape[0], 1, 3), self.sh_rest], 1)
             base = base + eval_sh(self.config.sh_degree, coeffs, view_directions(self.means, camera))
         amplitudes = w[..., None] * self.half_difference()[:, None, :]
-        vectors = (2 * math.pi) * self.wave_freqs[..., None] * directions
+        # frequencies stop where every rasterizer still agrees (types.MAX_WAVE_NUMBER radians per sigma)
+        limit = MAX_WAVE_NUMBER / (2 * math.pi) * (1 - 1e-5)  # float's products may round up
+        vectors = (2 * math.pi) * self.wave_freqs.clamp(-limit, limit)[..., None] * directions
         return Surfels(g["means"], g["quats"], g["scales"], g["opacities"], base, vectors, self.phases(), amplitudes,
                        counts)
 

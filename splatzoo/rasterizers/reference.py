@@ -30,7 +30,7 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, setti
     }
     proj = project(s, cam, settings) if s.num else None
     if proj is None or not bool(proj.visible.any()):
-        return _finish(out, bg)
+        return _finish(_attached(out, s), bg)
     order = _depth_order(proj)
     boxes = proj.boxes[order]
     pieces = []  # (x0, x1, y0, y1, dict of [h,w,...] tensors)
@@ -52,6 +52,8 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, setti
                 stack += [(x0, x1, y0, ym, idx, bx), (x0, x1, ym, y1, idx, bx)]
             continue
         pieces.append((x0, x1, y0, y1, _shade_rect(s, proj, idx, x0, x1, y0, y1, settings)))
+    if not pieces:
+        return _finish(_attached(out, s), bg)
     # assemble without in-place writes into tensors autograd needs: pad each piece to full size and sum
     for key in out:
         acc = out[key]
@@ -61,6 +63,13 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, setti
             acc = acc + torch.nn.functional.pad(v, pad)
         out[key] = acc
     return _finish(out, bg)
+
+
+def _attached(out: dict, s: Surfels) -> dict:
+    """A render that draws nothing, tied to the surfels with zero gradients (as the native backends return): a loss
+    over it can be backpropagated like any other."""
+    zero = sum(t.sum() for t in s.tensors().values()) * 0  # the fields are finite (Surfels.validate)
+    return {k: v + zero for k, v in out.items()}
 
 
 def _finish(out: dict, bg: torch.Tensor) -> RenderOutput:
@@ -85,10 +94,16 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
                             torch.arange(x0, x1, device=device, dtype=dtype) + 0.5, indexing="ij")
     px, py = xs.reshape(-1, 1), ys.reshape(-1, 1)  # [P,1]
     T = proj.T[idx]  # [n,3,3]
-    m1, m2, m3 = T[:, 0], T[:, 1], T[:, 2]  # [n,3]
+    m3 = T[:, 2]  # [n,3]: the hit depth z = m3 . (u, v, 1)
+    # The intersection uses T only through ratios (u, v, the footprint's Jacobian) that a common scale leaves
+    # unchanged; a power of two that brings each surfel's largest entry near 1 changes no rounding, and keeps the
+    # products of entries in range for a surfel many orders of magnitude wider than the image (as the native
+    # backends' plane_coeffs, csrc/surfel_math.h).
+    Tn = _unit_scaled(T)
+    m1, m2, m3n = Tn[:, 0], Tn[:, 1], Tn[:, 2]
     # ray-splat intersection: (u, v) from the cross product of the two planes through the pixel
-    hx = px[..., None] * m3 - m1  # [P,n,3]
-    hy = py[..., None] * m3 - m2
+    hx = px[..., None] * m3n - m1  # [P,n,3]
+    hy = py[..., None] * m3n - m2
     cr = torch.linalg.cross(hx, hy)
     cz = cr[..., 2]
     hits = (cz.abs() > st.parallel_eps * torch.maximum(cr[..., 0].abs(), cr[..., 1].abs())) & (cz != 0)
@@ -98,7 +113,7 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
     blur = None
     if st.antialiased:
         # the pixel footprint, seen in the surfel's frame, filters the surfel and its waves (footprint_filter)
-        A, B = torch.linalg.cross(m2, m3), torch.linalg.cross(m3, m1)  # dc/dx and dc/dy
+        A, B = torch.linalg.cross(m2, m3n), torch.linalg.cross(m3n, m1)  # dc/dx and dc/dy
         inv = 1 / cz_safe
         jac = ((A[:, 0] - u * A[:, 2]) * inv, (B[:, 0] - u * B[:, 2]) * inv,
                (A[:, 1] - v * A[:, 2]) * inv, (B[:, 1] - v * B[:, 2]) * inv)
@@ -154,6 +169,15 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
     return {"rgb": rgb.reshape(h, w, 3), "alpha": acc.reshape(h, w), "depth": depth.reshape(h, w),
             "median_depth": median.reshape(h, w), "normal": normal.reshape(h, w, 3),
             "distortion": distortion.reshape(h, w)}
+
+
+def _unit_scaled(T: torch.Tensor) -> torch.Tensor:
+    """T [n,3,3] times a power of two per surfel that brings its largest entry into [0.5, 1) (1 where that entry is
+    0 or not finite). The factor is a constant for autograd: nothing that uses the result depends on it."""
+    top = T.detach().abs().amax(dim=(1, 2))
+    top = torch.where(torch.isfinite(top) & (top > 0), top, torch.ones_like(top))
+    # a product with the factor (torch.ldexp passes no gradient)
+    return T * torch.ldexp(torch.ones_like(top), -torch.frexp(top).exponent)[:, None, None]
 
 
 def footprint_filter(u, v, jac, st: RasterSettings, hits):
