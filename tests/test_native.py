@@ -587,22 +587,35 @@ def test_gpu_backend_fixture_skips_only_for_want_of_a_gpu():
             backend_for_test("cuda")
 
 
-def test_a_first_build_announces_itself_and_a_cached_one_is_silent(monkeypatch, tmp_path, capsys):
+def test_builds_are_announced_and_a_cached_library_is_imported_never_rebuilt(monkeypatch, tmp_path, capsys):
+    """Every build says so on stderr (a damaged cached library says why it is built again); a library already built
+    is imported as it is, without ninja, which could rebuild it from file times and relink it under a process that
+    has it loaded."""
     from torch.utils import cpp_extension
 
     monkeypatch.setenv("SPLATZOO_EXTENSIONS_DIR", str(tmp_path))
-    built = []
+    built, sentinel = [], object()
 
     def fake_load(name, build_directory, **kw):
-        Path(build_directory, f"{name}.so").write_bytes(b"")  # what a finished build leaves
+        Path(build_directory, f"{name}.so").write_bytes(b"")  # as a build cut short leaves it
         built.append(name)
         return object()
 
+    def fake_import(name, path):
+        if not path.read_bytes():
+            raise ImportError(f"{path}: file too short")
+        return sentinel
+
     monkeypatch.setattr(cpp_extension, "load", fake_load)
+    monkeypatch.setattr(native, "_import_built", fake_import)
     native._build("cpu")
     err = capsys.readouterr().err
     assert "building the C++ rasterizer" in err and "built the C++ rasterizer in" in err
-    native._build("cpu")  # cached: loads without a word
+    native._build("cpu")  # the empty library does not load: built again, and the reason said
+    err = capsys.readouterr().err
+    assert "could not be loaded (ImportError" in err and "building the C++ rasterizer" in err and len(built) == 2
+    Path(tmp_path, built[0], f"{built[0]}.so").write_bytes(b"a finished build")
+    assert native._build("cpu") is sentinel  # cached: imported without a word and without ninja
     assert capsys.readouterr().err == "" and len(built) == 2
 
 

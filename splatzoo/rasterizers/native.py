@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import hashlib
+import importlib.util
 import os
 import platform
 import re
@@ -195,9 +196,18 @@ def _build(kind: str):
     if kind == "cuda":
         flags = flags + ["-DSPLATZOO_WITH_CUDA"]
         cuda_flags = cuda_flags + ["-DSPLATZOO_WITH_CUDA"]
-    fresh = not (build_dir / f"{name}.so").exists()
+    # The name is a hash of everything the build depends on, so a library already built under it is up to date:
+    # it is imported as it is. Handing it to ninja again could rebuild it from file times alone (a checkout that
+    # touched the sources) and relink it in place while other processes have it loaded.
+    built = build_dir / f"{name}.so"
+    damaged = None
+    if built.is_file():
+        try:
+            return _import_built(name, built)
+        except (ImportError, OSError) as e:  # a build cut short: made again below
+            damaged = f"{type(e).__name__}: {str(e)[:200]}"
     try:
-        with _announce_build(kind, build_dir, fresh):
+        with _announce_build(kind, build_dir, damaged):
             return cpp_extension.load(name=name, sources=sources, extra_cflags=flags, extra_cuda_cflags=cuda_flags,
                                       extra_ldflags=["-fopenmp"], build_directory=str(build_dir),
                                       with_cuda=(kind == "cuda"),
@@ -211,15 +221,24 @@ def _build(kind: str):
             + ". Set SPLATZOO_VERBOSE_BUILD=1 to see the full build log.") from None
 
 
+def _import_built(name: str, path: Path):
+    """The extension module `name` from its built library."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"{path} is not a loadable extension")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 @contextlib.contextmanager
-def _announce_build(kind: str, build_dir: Path, fresh: bool, every_s: float = 15.0):
-    """Say on stderr that a first build is running (it takes a minute or two, silently otherwise), with a line every
-    `every_s` seconds while it runs and the time it took."""
-    if not fresh:
-        yield
-        return
+def _announce_build(kind: str, build_dir: Path, damaged: str | None = None, every_s: float = 15.0):
+    """Say on stderr that a build is running (it takes a minute or two, silently otherwise), and why when a cached
+    one could not be loaded (`damaged`), with a line every `every_s` seconds while it runs and the time it took."""
     say = lambda msg: print(f"splatzoo: {msg}", file=sys.stderr, flush=True)  # noqa: E731
     what = "C++ and CUDA" if kind == "cuda" else "C++"
+    if damaged:
+        say(f"the cached {what} rasterizer could not be loaded ({damaged}); building it again")
     say(f"building the {what} rasterizer, once for this version, compiler and torch (about a minute or two) in "
         f"{build_dir}")
     done = threading.Event()
