@@ -300,6 +300,14 @@ SZ_HD void conic_box(const S* T9, S r2, S s00, S s01, S s11, S big, S* b) {
     }
 }
 
+// Row i of c = K R_cam p + K t, accumulated in double: a scene far from the origin cancels large coordinates against
+// the camera's translation (common.project does the same).
+template <class S>
+SZ_HD double camera_coord(const CameraArgs<S>& cam, const S* mean, int i) {
+    return double(cam.KR[3 * i]) * double(mean[0]) + double(cam.KR[3 * i + 1]) * double(mean[1]) +
+           double(cam.KR[3 * i + 2]) * double(mean[2]) + double(cam.Kt[i]);
+}
+
 // T = [a | b | c] with a = K R_cam (s_u t_u), b = K R_cam (s_v t_v), c = K R_cam p + K t (T9 row-major: row i is
 // (a_i, b_i, c_i)); the projected centre c_xy / c_z, the camera depth c_z, the world normal t_w turned to face the
 // camera; and the exact screen box of the support (common.screen_boxes: the disc u^2 + v^2 <= 2 ln(255 o) as a
@@ -314,7 +322,7 @@ SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S*
     for (int i = 0; i < 3; ++i) {
         T9[3 * i + 0] = KR[3 * i] * (scale[0] * R[0]) + KR[3 * i + 1] * (scale[0] * R[3]) + KR[3 * i + 2] * (scale[0] * R[6]);
         T9[3 * i + 1] = KR[3 * i] * (scale[1] * R[1]) + KR[3 * i + 1] * (scale[1] * R[4]) + KR[3 * i + 2] * (scale[1] * R[7]);
-        T9[3 * i + 2] = KR[3 * i] * mean[0] + KR[3 * i + 1] * mean[1] + KR[3 * i + 2] * mean[2] + cam.Kt[i];
+        T9[3 * i + 2] = S(camera_coord(cam, mean, i));
     }
     const S cz = T9[8];
     *depth = cz;
@@ -377,7 +385,7 @@ SZ_HD void project_backward(const CameraArgs<S>& cam, const S* mean, const S* qu
     const S* KR = cam.KR;
     S c[3], v_a[3], v_b[3], v_c[3];
     for (int i = 0; i < 3; ++i) {
-        c[i] = KR[3 * i] * mean[0] + KR[3 * i + 1] * mean[1] + KR[3 * i + 2] * mean[2] + cam.Kt[i];
+        c[i] = S(camera_coord(cam, mean, i));
         v_a[i] = v_T9[3 * i];
         v_b[i] = v_T9[3 * i + 1];
         v_c[i] = v_T9[3 * i + 2];

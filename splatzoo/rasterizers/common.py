@@ -78,16 +78,22 @@ class Projected:
 
 
 def project(s: Surfels, cam: Camera, settings: RasterSettings = SETTINGS) -> Projected:
+    dtype = s.means.dtype
     R = quat_to_rotmat(s.quats)
     tu, tv, tw = R[..., 0], R[..., 1], R[..., 2]
-    KR = cam.K @ cam.R
+    # The camera's products in double, rounded once to the surfels' dtype, and the centre's camera coordinates
+    # accumulated in double: a scene far from the origin cancels large coordinates against the camera's translation.
+    # The native backends do the same (rasterizers/native.py, csrc/surfel_math.h project_surfel), so they agree
+    # there to the rounding of the result.
+    cam64 = cam.to(dtype=torch.float64)
+    KR, Kt = (cam64.K @ cam64.R).to(dtype), (cam64.K @ cam64.t).to(dtype)
     a = (s.scales[:, :1] * tu) @ KR.T
     b = (s.scales[:, 1:2] * tv) @ KR.T
-    c = s.means @ KR.T + cam.K @ cam.t
+    c = (s.means.double() @ KR.double().T + Kt.double()).to(dtype)
     T = torch.stack([a, b, c], dim=-1)  # columns a, b, c -> T[:, i, :] is row m_{i+1}
     depth = c[:, 2]
     center_px = c[:, :2] / torch.where(depth.abs() > 1e-12, depth, torch.ones_like(depth))[:, None]
-    view = s.means - cam.center
+    view = s.means - cam64.center.to(dtype)
     facing = ((tw * view).sum(-1, keepdim=True) > 0).to(tw.dtype)
     normal = tw * (1 - 2 * facing)
     boxes, visible = screen_boxes(T.detach(), center_px.detach(), depth.detach(), s.opacities.detach(), cam, settings)
