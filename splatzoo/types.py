@@ -123,8 +123,8 @@ SURFEL_ROLES = ("geometry", "opacity", "appearance")
 # frequencies). The reasons:
 # - MAX_SCALE: the reference's anti-aliasing footprint overflows float beyond scale x focal ~ 1e19, and the camera
 #   checks allow focal lengths up to ~3e9 px;
-# - MAX_WAVE_NUMBER: float phases k . (u, v) lose their precision beyond it (1e4: gradients differ by 1.5% between
-#   backends; 1e3 radians per sigma is 160 periods per sigma, far finer than any pixel of a surfel's image);
+# - MAX_WAVE_NUMBER: float phases k . (u, v) lose their precision beyond it (gradients 5e-4 apart between backends
+#   at 1e4, 0.24 at 1e6; 1e3 radians per sigma is 160 periods per sigma, far finer than a pixel of most surfels);
 # - MAX_PHASE keeps phase + k . (u, v) where float's cosine is accurate to 1e-3;
 # - MAX_COORDINATE, MAX_VALUE: far from float's overflow in the products of the projection and the blend.
 MAX_SCALE = 1e8
