@@ -123,9 +123,26 @@ def bench_command(
     waves: str = typer.Option("0,4,4a", help="Comma-separated wave counts: 0 (2DGS), 4 (gabor), 4a (4 with mixed per-surfel counts)."),
     quick: bool = typer.Option(False, "--quick", help="Only the 128x128 scenes (5k surfels, sparse and dense)."),
     gpu: bool = typer.Option(False, "--gpu", help="The 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)."),
+    fps: Optional[Path] = typer.Option(None, "--fps", metavar="RUN",
+                                       help="Instead: the frame rate of a trained run, at its test views' size and at "
+                                       "1080 lines, image-only (as a viewer shows it) and with every output."),
+    backend: str = typer.Option("auto", "--backend", help="The backend of --fps: auto, cpu or cuda."),
 ) -> None:
-    """Benchmark the rasterizer backends (forward, forward+backward, pairs per second) and write a JSON report."""
+    """Benchmark the rasterizer backends (forward, forward+backward, pairs per second) and write a JSON report; or,
+    with --fps RUN, the frame rate of a trained run."""
     import importlib.util
+
+    if fps is not None:
+        from .evaluate import fps_report
+        from .runs import load_run
+
+        model, scene, _ = load_run(fps, backend)
+        views = scene.test or scene.train
+        for row in fps_report(model, [v.camera for v in views], scene.background, backend):
+            typer.echo(f"{row['label']:>11s} {row['size']:>10s}: {row['fps_image']:7.2f} FPS image-only, "
+                       f"{row['fps_full']:7.2f} FPS with every output ({backend} backend)")
+        return
+
 
     bench_file = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_rasterizer.py"
     if not bench_file.is_file():

@@ -23,23 +23,40 @@ def _device(model) -> torch.device:
 
 
 @torch.no_grad()
-def measure_fps(model, cameras: list[Camera], background, backend: str, min_frames: int = 10) -> float:
-    """Frames per second over the cameras (cycled to at least min_frames), after one warm-up pass."""
+def measure_fps(model, cameras: list[Camera], background, backend: str, min_frames: int = 10, *,
+                image_only: bool = True) -> float:
+    """Frames per second of image-only renders (rgb and alpha, what a viewer shows; image_only=False: every output,
+    as training's forward) over the cameras (cycled to at least min_frames), after one warm-up pass."""
     if not cameras:
         return float("nan")
     device = _device(model)
     cams = [c.to(device, torch.float32) for c in cameras]
     bg = torch.tensor(background, dtype=torch.float32, device=device)
     for c in cams[:2]:
-        model.render(c, background=bg, backend=backend)
+        model.render(c, background=bg, backend=backend, image_only=image_only)
     frames = max(min_frames, len(cams))
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     sync()
     t0 = time.perf_counter()
     for i in range(frames):
-        model.render(cams[i % len(cams)], background=bg, backend=backend)
+        model.render(cams[i % len(cams)], background=bg, backend=backend, image_only=image_only)
     sync()
     return frames / (time.perf_counter() - t0)
+
+
+def fps_report(model, cameras: list[Camera], background, backend: str, *, height: int = 1080,
+               min_frames: int = 10) -> list[dict]:
+    """A trained model's frame rate at its cameras' size and at `height` lines (the cameras scaled, aspect kept):
+    image-only renders (what a viewer shows) and full renders (every output, as training's forward), one row each."""
+    rows = []
+    for label, cams in (("own size", cameras), (f"{height} lines", [c.scaled(height / c.height) for c in cameras])):
+        if not cams:
+            continue
+        row = {"size": f"{cams[0].width}x{cams[0].height}", "label": label}
+        for key, image_only in (("fps_image", True), ("fps_full", False)):
+            row[key] = measure_fps(model, cams, background, backend, min_frames, image_only=image_only)
+        rows.append(row)
+    return rows
 
 
 @torch.no_grad()
@@ -55,7 +72,7 @@ def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None
     used = "test" if views is scene.test else "train"
     ps, ss, ls = [], [], []
     for v in views:
-        pred, gt = model.render(v.camera, background=scene.background, backend=backend).image(), v.image_float()
+        pred, gt = model.render(v.camera, background=scene.background, backend=backend, image_only=True).image(), v.image_float()
         ps.append(psnr(pred, gt))
         ss.append(ssim(pred, gt))
         ls.append(lpips(pred, gt, net=lpips_net, convention=lpips_convention) if min(gt.shape[:2]) >= 32 else float("nan"))
@@ -107,11 +124,11 @@ def evaluate_scales(model, scene, scales, *, backend: str = "auto", lpips_net: s
     scores = {scale: {"psnr": [], "ssim": [], "lpips": [], "consistency_psnr": []} for scale in scales}
     sizes = {}
     for v in views:  # each view's image and full-size render once, for every scale
-        image, full = v.image_float(), model.render(v.camera, background=scene.background, backend=backend).image()
+        image, full = v.image_float(), model.render(v.camera, background=scene.background, backend=backend, image_only=True).image()
         for scale in scales:
             cam = v.camera.scaled(scale)
             sizes[scale] = [cam.width, cam.height]
-            small = model.render(cam, background=scene.background, backend=backend).image()
+            small = model.render(cam, background=scene.background, backend=backend, image_only=True).image()
             gt = area_resize(image, cam.width, cam.height)
             r = scores[scale]
             r["psnr"].append(psnr(small, gt))
@@ -172,7 +189,7 @@ def save_test_renders(model, scene, out_dir, *, backend: str = "auto", split: st
     paths = []
     for v in views:
         p = out_dir / (Path(v.name).stem + ".png")
-        write_png(p, model.render(v.camera, background=scene.background, backend=backend).image())
+        write_png(p, model.render(v.camera, background=scene.background, backend=backend, image_only=True).image())
         paths.append(p)
     return paths
 
@@ -222,7 +239,7 @@ def write_video(model, cameras: list[Camera], background, path, *, backend: str)
                 if not writer.isOpened():
                     raise NoEncoder
                 for c in cameras:
-                    frame = to_uint8(model.render(c, background=background, backend=backend).image())
+                    frame = to_uint8(model.render(c, background=background, backend=backend, image_only=True).image())
                     writer.write(np.ascontiguousarray(frame[..., ::-1]))
                 writer.release()
             return target

@@ -284,17 +284,19 @@ class RenderOutput:
     (sum w z / sum w; 0 where nothing is hit); median_depth [H,W] (depth where transmittance crosses 0.5);
     normal [H,W,3] world-space, weighted sum of surfel normals that face the camera; distortion [H,W] the
     2DGS depth-distortion term sum_{j<i} w_i w_j (m_i - m_j)^2 on NDC depth m.
+    An image-only render (rasterize(..., image_only=True)) has rgb and alpha only; the others are None.
     """
 
     rgb: torch.Tensor
     alpha: torch.Tensor
-    depth: torch.Tensor
-    median_depth: torch.Tensor
-    normal: torch.Tensor
-    distortion: torch.Tensor
+    depth: torch.Tensor | None = None
+    median_depth: torch.Tensor | None = None
+    normal: torch.Tensor | None = None
+    distortion: torch.Tensor | None = None
 
     def tensors(self) -> dict[str, torch.Tensor]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """The outputs this render has (all six, or rgb and alpha for an image-only render)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
 
     def image(self) -> torch.Tensor:
         """rgb as a picture: float [H,W,3] clamped to [0,1], cut from autograd, on the CPU."""

@@ -177,7 +177,9 @@ def render_frame(model, cam: Camera, mode: str = "rgb", *, background=(0.0, 0.0,
         elif mode == "frequency":  # 0.5 cycles per pixel (Nyquist) in the middle of the map
             surfels = _flat(surfels, _colormap(surfel_cycles_per_pixel(surfels, cam)))
             bg = (0.0, 0.0, 0.0)
-        out = model.render(cam, background=bg, backend=backend, surfels=surfels)
+        # colour and alpha only where that is all the mode shows (no depth, normal or distortion to compute)
+        image_only = mode in ("rgb", "surfels", "waves", "frequency", "alpha")
+        out = model.render(cam, background=bg, backend=backend, surfels=surfels, image_only=image_only)
         if mode in ("rgb", "surfels", "waves", "frequency"):
             image = out.rgb
         elif mode == "alpha":

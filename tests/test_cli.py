@@ -178,6 +178,16 @@ def test_a_signal_during_the_final_evaluation_exits_with_its_own_code(monkeypatc
     assert "evaluation was interrupted" in capsys.readouterr().err
 
 
+def test_bench_fps_measures_a_trained_run(tiny_run):
+    """`splatzoo bench --fps RUN`: frame rates at the run's size and at 1080 lines, image-only and full."""
+    _, run = tiny_run
+    r = runner.invoke(app, ["bench", "--fps", str(run), "--backend", "cpu"])
+    assert r.exit_code == 0, r.output
+    lines = [line for line in r.output.splitlines() if "FPS image-only" in line]
+    assert len(lines) == 2 and "32x32" in lines[0] and "1080x1080" in lines[1], r.output
+    assert all(float(line.split(":")[1].split()[0]) > 0 for line in lines)
+
+
 def test_bad_render_and_eval_arguments_are_named(tiny_run, tmp_path):
     """`render --frames 0` is a usage error, not an IndexError; a model file given for a run folder says so."""
     _, run = tiny_run

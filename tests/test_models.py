@@ -45,6 +45,14 @@ def test_model_conformance(name, tmp_path):
         assert torch.equal(v, getattr(b, k)), k
 
 
+def test_model_render_image_only_is_the_same_picture_without_autograd():
+    pts, cols = point_cloud()
+    model = splatzoo.create_model("gabor", pts, cols, seed=1)
+    full = model.render(CAM, backend="cpu")
+    image = model.render(CAM, backend="cpu", image_only=True)
+    assert torch.equal(image.rgb, full.rgb.detach()) and image.depth is None and image.rgb.grad_fn is None
+
+
 @pytest.mark.parametrize("name", ["2dgs", "gabor"])
 def test_parameters_beyond_the_valid_range_render_with_finite_gradients(name):
     """A crafted or diverged log-scale of 88 (exp overflows float) or a wave frequency of 1e20 is held at the valid

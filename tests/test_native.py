@@ -379,6 +379,23 @@ def test_values_outside_a_fields_range_are_refused_by_name(field, value):
         rasterize(s, _cam(), backend="cpu")
 
 
+@pytest.mark.parametrize("settings", [SETTINGS, ANTIALIASED], ids=["plain", "antialiased"])
+def test_an_image_only_render_has_the_full_renders_pixels(any_backend, settings):
+    """rasterize(..., image_only=True), the render to look at: rgb and alpha bit for bit those of the full render (the
+    same blend), the other outputs None, nothing differentiable, on every backend."""
+    s, cam = random_scene(800, 48, 40, 4, seed=3)
+    s.wave_counts = torch.randint(0, 5, (s.num,), generator=torch.Generator().manual_seed(1))
+    dev = any_backend.torch_device()
+    s = s.to(dev)
+    full = rasterize(s, cam, backend=any_backend, background=(0.2, 0.4, 0.6), settings=settings)
+    leaves = s.map(lambda t: t.clone().requires_grad_(True))
+    image = rasterize(leaves, cam, backend=any_backend, background=(0.2, 0.4, 0.6), settings=settings,
+                      image_only=True)
+    assert torch.equal(image.rgb, full.rgb) and torch.equal(image.alpha, full.alpha)
+    assert image.depth is None and image.normal is None and image.distortion is None
+    assert not image.rgb.requires_grad and set(image.tensors()) == {"rgb", "alpha"}
+
+
 def test_near_plane_and_behind_camera(native_backend):
     # camera at z = -4 looking +z: camera depth = z + 4
     near = SETTINGS.near

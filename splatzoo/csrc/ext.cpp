@@ -119,7 +119,7 @@ sz::FrameArgs<S> frame_args(const TensorMap& st, const TensorMap* out) {
     auto i = [&](const char* k) { return need(st, k).data_ptr<int>(); };
     return {p(st, "geom"), i("bounds"), i("tile_start"), i("tile_list"),
             o("rgb"), o("alpha"), out ? p(*out, "depth") : p(st, "depth"), o("median_depth"), o("normal"),
-            o("distortion"), p(st, "T_final"), p(st, "totals"), i("last"), i("median_index")};
+            o("distortion"), p(st, "T_final"), p(st, "totals"), i("last"), i("median_index"), false};
 }
 
 // The per-surfel fields in table order (surfel_fields.h), checked against the table: one dtype and device, shape
@@ -154,14 +154,15 @@ TensorMap check_surfels(const std::vector<Tensor>& fields, int64_t& N, int64_t& 
     return out;
 }
 
-// render(settings, fields, wave_counts, KR, Kt, eye, width, height, emulated) -> (outputs, state), two dicts of
-// tensors; fields: the per-surfel tensors in the order of the field table (surfel_fields.h).
+// render(settings, fields, wave_counts, KR, Kt, eye, width, height, emulated, image_only) -> (outputs, state), two
+// dicts of tensors; fields: the per-surfel tensors in the order of the field table (surfel_fields.h). image_only:
+// outputs rgb and alpha only, and no state (a render to look at, not to differentiate).
 // outputs: rgb [H,W,3], alpha, depth, median_depth [H,W], normal [H,W,3], distortion [H,W] (before the background);
 // state: what render_backward needs (the projection, the depth order of the visible surfels, the binning, the
 // per-pixel totals), every per-surfel tensor in input order.
 std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector<Tensor>& fields,
                                        const std::optional<Tensor>& wave_counts, const Tensor& KR, const Tensor& Kt,
-                                       const Tensor& eye, int64_t W, int64_t H, bool emulated) {
+                                       const Tensor& eye, int64_t W, int64_t H, bool emulated, bool image_only) {
     int64_t N = 0, K = 0;
     const TensorMap surfels = check_surfels(fields, N, K);
     const Tensor& means = surfels.at("means");
@@ -249,7 +250,26 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector
         }
     });
 
-    // 4. the tile loop
+    // 4. the tile loop; a render to look at writes rgb and alpha only and keeps no state
+    if (image_only) {
+        TensorMap out = {{"rgb", at::empty({H, W, 3}, f)}, {"alpha", at::empty({H, W}, f)}};
+        AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_image", [&] {
+            const auto s = surfel_args<scalar_t>(st, state, W, H);
+            sz::FrameArgs<scalar_t> fr{};
+            fr.geom = state["geom"].data_ptr<scalar_t>();
+            fr.bounds = state["bounds"].data_ptr<int>();
+            fr.tile_start = state["tile_start"].data_ptr<int>();
+            fr.tile_list = state["tile_list"].data_ptr<int>();
+            fr.rgb = out["rgb"].data_ptr<scalar_t>();
+            fr.alpha = out["alpha"].data_ptr<scalar_t>();
+            fr.image_only = true;
+            if (dev == Device::Cpu)
+                sz::cpu_forward<scalar_t>(s, fr, threads);
+            else
+                SZ_KERNELS(dev, forward<scalar_t>, s, fr, stream);
+        });
+        return {out, TensorMap{}};
+    }
     TensorMap out = {{"rgb", at::empty({H, W, 3}, f)}, {"alpha", at::empty({H, W}, f)}, {"depth", at::empty({H, W}, f)},
                      {"median_depth", at::empty({H, W}, f)}, {"normal", at::empty({H, W, 3}, f)},
                      {"distortion", at::empty({H, W}, f)}};
@@ -370,7 +390,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
                                                "parallel_eps", "pixel_filter");
     m.def("render", &render, "Project, cull, sort, bin and rasterize surfels; returns (outputs, state)",
           py::arg("settings"), py::arg("fields"), py::arg("wave_counts"), py::arg("KR"), py::arg("Kt"), py::arg("eye"),
-          py::arg("width"), py::arg("height"), py::arg("emulated") = false);
+          py::arg("width"), py::arg("height"), py::arg("emulated") = false, py::arg("image_only") = false);
     // the field table this build was compiled with (surfel_fields.h), in the order render() takes them
     py::list names;
     for (const sz::SurfelFieldInfo& info : sz::SURFEL_FIELD_INFO) names.append(info.name);

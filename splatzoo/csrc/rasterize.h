@@ -75,6 +75,8 @@ struct FrameArgs {
     S* totals;          // [H,W,3] sum w, sum w m, sum w m^2
     int* last;          // 1 + tile-list position (relative to the tile start) of the last blended contribution
     int* median_index;  // relative tile-list position of the median contribution, -1 if none
+    // a render to look at: rgb and alpha only; the other outputs and the saved state are not written (nullptr)
+    bool image_only;
 };
 
 template <class S>
@@ -109,6 +111,11 @@ SZ_HD SurfelColour<S> surfel_colour(const SurfelArgs<S>& s, int64_t i) {
 template <class S>
 SZ_HD void store_pixel(const FrameArgs<S>& f, int64_t o, const PixelFwd<S>& q) {
     const S acc = S(1) - q.T;
+    if (f.image_only) {
+        for (int k = 0; k < 3; ++k) f.rgb[3 * o + k] = q.rgb[k];
+        f.alpha[o] = acc;
+        return;
+    }
     for (int k = 0; k < 3; ++k) {
         f.rgb[3 * o + k] = q.rgb[k];
         f.normal[3 * o + k] = q.N[k];

@@ -305,8 +305,8 @@ void cpu_bin(int M, int W, int H, const int* order, const int* bounds, const int
     }
 }
 
-template <class S>
-void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
+template <bool IMAGE_ONLY, class S>
+void cpu_forward_impl(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
     const int W = s.W, H = s.H;
     const int nt = tiles_x(W) * tiles_y(H);
     const Geom<S>* geom = reinterpret_cast<const Geom<S>*>(f.geom);
@@ -345,7 +345,7 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                         if (a == S(0) || px[p].done) continue;
                         S col[3], pre[3];
                         wave_color(sf.base, sf.wv, sf.wp, wa, sf.K, sc.u[p], sc.v[p], col, pre);
-                        blend_forward(s.st, px[p], a, sc.z[p], col, sf.normal, rel);
+                        blend_forward<IMAGE_ONLY>(s.st, px[p], a, sc.z[p], col, sf.normal, rel);
                         active -= px[p].done;
                     }
             }
@@ -353,6 +353,14 @@ void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
                 for (int c = 0; c < tr.w; ++c) store_pixel(f, int64_t(tr.y0 + r) * W + tr.x0 + c, px[r * TILE + c]);
         }
     }
+}
+
+template <class S>
+void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads) {
+    if (f.image_only)
+        cpu_forward_impl<true>(s, f, threads);
+    else
+        cpu_forward_impl<false>(s, f, threads);
 }
 
 template <class S>

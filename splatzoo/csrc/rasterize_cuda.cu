@@ -127,7 +127,7 @@ __device__ __forceinline__ ThreadPixel thread_pixel(int W, int H) {
     return {t, x, y, x < W && y < H};
 }
 
-template <class S>
+template <class S, bool IMAGE_ONLY>
 __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameArgs<S> f) {
     const Settings st = s.st;
     const auto [t, x, y, inside] = thread_pixel(s.W, s.H);
@@ -150,7 +150,7 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
             const SurfelColour<S> sf = surfel_colour(s, sh.id[j]);
             S col[3], pre[3];
             wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, e.u, e.v, col, pre, st.pixel_filter > 0 ? sh.g[j].blur : nullptr);
-            blend_forward(st, p, e.alpha, e.z, col, sf.normal, base + j - start);
+            blend_forward<IMAGE_ONLY>(st, p, e.alpha, e.z, col, sf.normal, base + j - start);
         }
     }
     if (inside) store_pixel(f, int64_t(y) * s.W + x, p);
@@ -319,7 +319,12 @@ void tile_starts(int64_t P, int tiles, const int* order, const int64_t* keys, in
 template <class S>
 void forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, void* stream) {
     const int nt = tiles_x(s.W) * tiles_y(s.H);
-    SZ_LAUNCH(forward_kernel<S>, nt, BLOCK, static_cast<cudaStream_t>(stream))(s, f);
+    constexpr auto full = &forward_kernel<S, false>;  // one name: a template-id's comma would split the macro
+    constexpr auto image = &forward_kernel<S, true>;
+    if (f.image_only)
+        SZ_LAUNCH(image, nt, BLOCK, static_cast<cudaStream_t>(stream))(s, f);
+    else
+        SZ_LAUNCH(full, nt, BLOCK, static_cast<cudaStream_t>(stream))(s, f);
     check(cudaGetLastError(), "forward kernel launch");
 }
 

@@ -725,7 +725,8 @@ SZ_HD void pixel_init(PixelFwd<S>& p, bool done) {
 
 // Blend one valid contribution (alpha > 0) at tile-list position `pos`; col is the clamped colour, n the normal.
 // Stops the pixel, without blending, when the contribution would bring T below t_min (reference: `kept`).
-template <class S>
+// IMAGE_ONLY: colour and transmittance only (a render to look at: no depth, normal, distortion or backward state).
+template <bool IMAGE_ONLY = false, class S>
 SZ_HD void blend_forward(const Settings& st, PixelFwd<S>& p, S alpha, S z, const S col[3], const S* n, int pos) {
     S Tn = p.T * (S(1) - alpha);
     if (Tn < S(st.t_min)) {
@@ -736,6 +737,10 @@ SZ_HD void blend_forward(const Settings& st, PixelFwd<S>& p, S alpha, S z, const
     p.rgb[0] += w * col[0];
     p.rgb[1] += w * col[1];
     p.rgb[2] += w * col[2];
+    if constexpr (IMAGE_ONLY) {
+        p.T = Tn;
+        return;
+    }
     p.D += w * z;
     p.N[0] += w * n[0];
     p.N[1] += w * n[1];

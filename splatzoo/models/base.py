@@ -78,8 +78,8 @@ class SplatModel(nn.Module):
         raise NotImplementedError
 
     # --- rendering ----------------------------------------------------------------------------------
-    def render(self, camera: Camera, *, background=None, backend="auto", surfels: Surfels | None = None
-               ) -> RenderOutput:
+    def render(self, camera: Camera, *, background=None, backend="auto", surfels: Surfels | None = None,
+               image_only: bool = False) -> RenderOutput:
         """The model seen from `camera`, rendered as it was trained: with its own raster settings (the pixel-footprint
         filter, see `antialias`) over `background` (a colour [3] or a grey scalar; default: the model's own
         `background`, black if it has none). Differentiable with respect to the parameters (not the camera).
@@ -87,6 +87,7 @@ class SplatModel(nn.Module):
         The camera is moved to the model's device and dtype. backend: "auto" or a name (splatzoo.rasterizers).
         surfels: other surfels of this model for this camera to render with its settings instead of
         `surfels(camera)`, e.g. a recolouring for display or the model with some waves removed.
+        image_only: a picture to look at or score, fast: rgb and alpha only, not differentiable (see rasterize).
         """
         from ..rasterizers import rasterize
 
@@ -95,8 +96,10 @@ class SplatModel(nn.Module):
         if background is None:
             background = self.background
         if surfels is None:
-            surfels = self.surfels(cam)
-        return rasterize(surfels, cam, backend=backend, background=background, settings=self.raster_settings)
+            with torch.set_grad_enabled(torch.is_grad_enabled() and not image_only):
+                surfels = self.surfels(cam)
+        return rasterize(surfels, cam, backend=backend, background=background, settings=self.raster_settings,
+                         image_only=image_only)
 
     # --- generic helpers ----------------------------------------------------------------------------
     @property

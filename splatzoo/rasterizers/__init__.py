@@ -28,7 +28,7 @@ class Backend:
 
     device: "cpu" or "cuda", where its surfels must be; None: any device (the reference).
     check: raises BackendUnavailableError saying why the backend cannot run here (builds the extension if needed).
-    render: (surfels, camera, background, settings) -> RenderOutput.
+    render: (surfels, camera, background, settings, image_only) -> RenderOutput (image_only: rasterize's).
     auto_rank: preference under "auto", lower first; None: never chosen automatically.
     """
 
@@ -36,7 +36,7 @@ class Backend:
     device: str | None
     description: str
     check: Callable[[], None]
-    render: Callable[[Surfels, Camera, object, RasterSettings], RenderOutput]
+    render: Callable[[Surfels, Camera, object, RasterSettings, bool], RenderOutput]
     auto_rank: int | None = None
     test_only: bool = False
 
@@ -73,18 +73,23 @@ def _check_native(build: str):
 
 
 def _render_native(build: str, emulated: bool = False):
-    def render(surfels, camera, background, settings):
+    def render(surfels, camera, background, settings, image_only=False):
         from . import native
 
-        return native.render(surfels, camera, background, settings, build=build, emulated=emulated)
+        return native.render(surfels, camera, background, settings, build=build, emulated=emulated,
+                             image_only=image_only)
 
     return render
 
 
-def _render_reference(surfels, camera, background, settings):
+def _render_reference(surfels, camera, background, settings, image_only=False):
     from .reference import rasterize_reference
 
-    return rasterize_reference(surfels, camera, background, settings)
+    if not image_only:
+        return rasterize_reference(surfels, camera, background, settings)
+    with torch.no_grad():  # the same maths: the oracle of the native image-only renders
+        out = rasterize_reference(surfels, camera, background, settings)
+    return RenderOutput(rgb=out.rgb, alpha=out.alpha)
 
 
 register_backend(Backend("cuda", "cuda", "CUDA tile rasterizer", _check_native("cuda"), _render_native("cuda"),
@@ -162,12 +167,14 @@ def check_image_size(camera: Camera) -> None:
 
 
 def rasterize(surfels: Surfels, camera: Camera, *, backend: str | Backend = "auto", background=None,
-              settings: RasterSettings = SETTINGS) -> RenderOutput:
+              settings: RasterSettings = SETTINGS, image_only: bool = False) -> RenderOutput:
     """Render `surfels` seen from `camera`. Differentiable with respect to every Surfels field (not the camera).
 
     backend: "auto" (the fastest backend that runs on the surfels' device), a backend name (see BACKENDS.names())
     or a Backend. background: colour [3] (or a grey scalar) behind the surfels; black by default.
     settings: the rasterizer's numeric settings (near plane, alpha limits, ...).
+    image_only: a render to look at (a viewer's frame, an evaluation, a frame rate): rgb and alpha only, the others
+    None, not differentiable, and nothing kept for a backward; the same pixels as the full render.
     """
     if not isinstance(surfels, Surfels):
         raise TypeError(f"rasterize expects a splatzoo.Surfels, got {type(surfels).__name__}")
@@ -178,4 +185,6 @@ def rasterize(surfels: Surfels, camera: Camera, *, backend: str | Backend = "aut
     surfels.validate()
     check_image_size(camera)
     b = select_backend(backend, surfels.means.device)
+    if image_only:
+        return b.render(surfels, camera.detach(), background, settings, True)
     return b.render(surfels, camera.detach(), background, settings)

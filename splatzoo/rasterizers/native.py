@@ -321,9 +321,10 @@ def settings_struct(C, settings: RasterSettings):
 
 
 def render(surfels: Surfels, camera: Camera, background=None, settings: RasterSettings | None = None, *,
-           build: str = "cpu", emulated: bool = False) -> RenderOutput:
+           build: str = "cpu", emulated: bool = False, image_only: bool = False) -> RenderOutput:
     """Render with the native tile rasterizer of `build` ("cpu" or "cuda"); same contract and maths as
-    rasterize_reference. emulated=True runs the CUDA kernels under the host emulation (CPU tensors)."""
+    rasterize_reference. emulated=True runs the CUDA kernels under the host emulation (CPU tensors).
+    image_only=True: rgb and alpha only, outside autograd, with no state kept for a backward (to look at)."""
     C = load(build)
     s = surfels
     want = "cuda" if build == "cuda" else "cpu"
@@ -338,6 +339,13 @@ def render(surfels: Surfels, camera: Camera, background=None, settings: RasterSe
     KR, Kt, eye = ((cam.K @ cam.R).to(s.means.dtype), (cam.K @ cam.t).to(s.means.dtype), cam.center.to(s.means.dtype))
     call = _Call(C, settings_struct(C, settings or RasterSettings()), KR, Kt, eye, cam.width, cam.height,
                  s.wave_counts, emulated)
+    if image_only:
+        with torch.no_grad():
+            out, _ = C.render(call.settings, [getattr(s, k).detach() for k in SURFEL_FIELDS], s.wave_counts, KR, Kt,
+                              eye, cam.width, cam.height, emulated, True)
+            rgb, alpha = out["rgb"], out["alpha"]
+            rgb = rgb + (1 - alpha)[..., None] * background_tensor(background, rgb)
+        return RenderOutput(rgb=rgb, alpha=alpha)
     rgb, alpha, depth, median, normal, dist = _RenderFn.apply(call, *(getattr(s, k) for k in SURFEL_FIELDS))
     rgb = rgb + (1 - alpha)[..., None] * background_tensor(background, s.means)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist)
