@@ -55,7 +55,8 @@ def _root(
 # (data commands go here)
 @app.command("sfm")
 def sfm_command(
-    images_dir: Path = typer.Argument(..., metavar="IMAGES", help="Folder of photos (png/jpg) of one static subject."),
+    images_dir: Path = typer.Argument(..., metavar="IMAGES", help="Folder of photos (png/jpg) of one static subject, "
+                                      "or a video of it (mp4, mov, avi, ...: sharp frames are taken from it)."),
     out: Path = typer.Option(..., "--out", "-o", help="Dataset folder to create (images/, sparse/0/)."),
     camera_model: str = typer.Option("SIMPLE_RADIAL", "--camera-model",
                                      help="COLMAP camera model to fit (case-insensitive): SIMPLE_RADIAL, SIMPLE_PINHOLE "
@@ -72,13 +73,32 @@ def sfm_command(
     single_camera: bool = typer.Option(True, help="One camera shared by all photos of one size."),
     seed: int = typer.Option(0, help="Random seed for the mapper."),
     overwrite: bool = typer.Option(False, help="Replace an existing output folder."),
+    matching: str = typer.Option("auto", "--matching", metavar="STRATEGY",
+                                 help="Which image pairs to match: auto (exhaustive up to 40 photos; sequential for a "
+                                 "video or file names numbered in sequence; vocabtree beyond), exhaustive (every "
+                                 "pair), sequential (each frame with its neighbours in order, plus loop closure), "
+                                 "vocabtree (each photo with those most like it), spatial (by EXIF GPS)."),
+    vocab_tree: Optional[Path] = typer.Option(None, "--vocab-tree", metavar="PATH",
+                                              help="A COLMAP vocabulary tree file (.bin) for vocabtree matching and "
+                                              "loop closure; without it a small one is built from the photos."),
+    fps: Optional[float] = typer.Option(None, "--fps", help="Video: frames to keep per second of video (default 2); "
+                                        "the sharpest frame of each window is kept."),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Video: how many frames to keep, evenly spread over "
+                                         "the clip (instead of --fps)."),
 ) -> None:
-    """Structure from motion on the CPU (pycolmap): poses and a sparse point cloud from photos, checked (distortion
-    that folds, a focal far from the prior, few points) before the dataset is written."""
+    """Structure from motion on the CPU (pycolmap): poses and a sparse point cloud from photos or a video, checked
+    (distortion that folds, a focal far from the prior, few points) before the dataset is written."""
     from .data.sfm import run_sfm
+    from .data.video import VIDEO_SUFFIXES, sfm_video
 
-    res = run_sfm(images_dir, out, progress=typer.echo, camera_model=camera_model, single_camera=single_camera,
-                  seed=seed, overwrite=overwrite, focal=focal, retry=retry, report=report)
+    options = dict(progress=typer.echo, camera_model=camera_model, single_camera=single_camera, seed=seed,
+                   focal=focal, retry=retry, report=report, matching=matching, vocab_tree=vocab_tree)
+    if images_dir.is_file() or (images_dir.suffix.lower() in VIDEO_SUFFIXES and not images_dir.is_dir()):
+        res = sfm_video(images_dir, out, fps=fps, frames=frames, overwrite=overwrite, **options)
+    else:
+        if fps is not None or frames is not None:
+            raise SplatzooError(f"--fps and --frames choose frames of a video, but {images_dir} is not a video file")
+        res = run_sfm(images_dir, out, overwrite=overwrite, **options)
     if res.num_registered < res.num_images:
         typer.echo(f"warning: only {res.num_registered} of {res.num_images} images registered", err=True)
 
