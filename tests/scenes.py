@@ -6,7 +6,7 @@ import math
 import torch
 
 from splatzoo import Camera, Surfels
-from splatzoo.types import MAX_SCALE, MAX_WAVE_NUMBER
+from splatzoo.types import MAX_FALLOFF, MAX_SCALE, MAX_WAVE_NUMBER
 from splatzoo.geometry import normals_to_quats
 
 
@@ -61,6 +61,10 @@ def extreme_cases(dtype=torch.float32) -> list[tuple[str, Surfels, Camera]]:
     w = MAX_WAVE_NUMBER  # the highest wave number a surfel may have (types.py)
     cases.append(("freq_max", single_surfel(k_vectors=[(w, 0.0), (0.0, w), (-w, w)], dtype=dtype), cam))
     cases.append(("scale_max", single_surfel(scale=(MAX_SCALE, MAX_SCALE), dtype=dtype), cam))
+    for name, s_exp in (("beta_tiny", 1e-9), ("beta_max", MAX_FALLOFF)):  # the Beta falloff at its range's ends
+        one = single_surfel(k_vectors=[(3.0, 1.0)], dtype=dtype)
+        one.falloff = torch.full_like(one.opacities, s_exp)
+        cases.append((name, one, cam))
     for o in (0.0, 1.0):
         cases.append((f"opacity{o:g}", single_surfel(opacity=o, dtype=dtype), cam))
     # the camera is at z = -3 looking along +z: depth = z + 3

@@ -175,17 +175,23 @@ def test_native_backends_match_the_reference_float32(native_backend):
     _check_grads(g_ref, g_nat)
 
 
-def test_gradcheck_including_the_means(native_backend):
+@pytest.mark.parametrize("kernel", ["gaussian", "beta"])
+def test_gradcheck_including_the_means(native_backend, kernel):
     """Filtered, nothing switches between the hit and the screen filter, so even the means pass finite
-    differences (test_native's gradcheck leaves them out)."""
+    differences (test_native's gradcheck leaves them out). The Gaussian falloff (exponent 0, the edge of its
+    range) is held; the Beta kernel's exponents are checked too."""
     s, cam = sphere_and_wall(6, 12, 10, 2, seed=3, dtype=D, px_sigma=(0.5, 3.0))
     s = s.to(native_backend.torch_device())
     s.opacities.fill_(0.6)
     s.means[:, 2] += 0.01 * torch.arange(6, dtype=D)  # no two at one depth: a tie's order flips under a step
-    inputs = [t.detach().clone().requires_grad_(True) for t in s.tensors().values()]
+    if kernel == "beta":
+        s.falloff = torch.tensor([0.02, 0.3, 1e-3, 0.9, 0.1, 0.5], dtype=D, device=s.means.device)
+    fixed = {"falloff": s.falloff} if kernel == "gaussian" else {}
+    names = [k for k in s.tensors() if k not in fixed]
+    inputs = [getattr(s, k).detach().clone().requires_grad_(True) for k in names]
 
     def f(*x):
-        out = rasterize(Surfels(*x), cam, backend=native_backend, settings=ANTIALIASED)
+        out = rasterize(Surfels(**dict(zip(names, x)), **fixed), cam, backend=native_backend, settings=ANTIALIASED)
         return tuple(getattr(out, k) * w for k, w in zip(FIELDS, (1.0, 0.7, 0.3, 0.2, 0.5, 2.0)))
 
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)

@@ -26,7 +26,7 @@ from splatzoo.rasterizers import BACKENDS, native, rasterize, select_backend
 from splatzoo.rasterizers.common import ANTIALIASED, SETTINGS, RasterSettings
 from splatzoo.rasterizers.reference import rasterize_reference
 from splatzoo.testing import sphere_and_wall as random_scene
-from splatzoo.types import MAX_PHASE, MAX_SCALE, MAX_WAVE_NUMBER, SURFEL_FIELDS, Camera, Surfels
+from splatzoo.types import MAX_FALLOFF, MAX_PHASE, MAX_SCALE, MAX_WAVE_NUMBER, SURFEL_FIELDS, Camera, Surfels
 
 CSRC = Path(__file__).resolve().parents[1] / "splatzoo" / "csrc"
 FIELDS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
@@ -197,8 +197,14 @@ def test_agrees_with_the_cpu_backend(name, K):
     _check_grads(g_cpu, g_nat)
 
 
-def test_matches_reference_float64_exactly(native_backend):
+@pytest.mark.parametrize("kernel", ["gaussian", "beta"])
+def test_matches_reference_float64_exactly(native_backend, kernel):
     s, cam = random_scene(400, 48, 40, 3, seed=5, dtype=torch.float64)
+    if kernel == "beta":  # a mix: Gaussians, Beta kernels from nearly Gaussian to the tightest
+        s.falloff = torch.rand(s.num, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+        s.falloff[::4] = 0.0
+        s.falloff[1::9] = 1e-6
+        s.falloff[2::9] = MAX_FALLOFF
     cot = _cotangent(40, 48, torch.float64)
     ref, g_ref = _render_and_grads("reference", s, cam, cot, [0.1, 0.1, 0.1])
     nat, g_nat = _render_and_grads(native_backend, s, cam, cot, [0.1, 0.1, 0.1])
@@ -207,7 +213,8 @@ def test_matches_reference_float64_exactly(native_backend):
     _check_grads(g_ref, g_nat, rel_tol=1e-7, cos_tol=1 - 1e-12)
 
 
-def test_gradcheck_float64(native_backend):
+@pytest.mark.parametrize("kernel", ["gaussian", "beta"])
+def test_gradcheck_float64(native_backend, kernel):
     """The hand-written backward of the whole native render (projection, culling, sort, tile loop), by finite
     differences. Not w.r.t. the means: a small move of a mean moves the boundary where the screen filter takes over
     (there the surfel is seen as its centre, a step in colour), in the reference as well; the means' gradient is
@@ -215,12 +222,15 @@ def test_gradcheck_float64(native_backend):
     s, cam = random_scene(6, 12, 10, 2, seed=3, dtype=torch.float64, px_sigma=(2.0, 3.0))
     s = s.to(native_backend.torch_device())
     s.opacities.fill_(0.6)
+    if kernel == "beta":  # falloff exponents inside (0, 1]: finite differences stay in the valid range
+        s.falloff = torch.tensor([0.02, 0.3, 1e-3, 0.9, 0.1, 0.5], dtype=torch.float64, device=s.means.device)
     means = s.means.detach()
-    names = [name for name in s.tensors() if name != "means"]
+    fixed = {"falloff": s.falloff} if kernel == "gaussian" else {}  # 0 is the range's edge
+    names = [name for name in s.tensors() if name != "means" and name not in fixed]
     inputs = [getattr(s, n).detach().clone().requires_grad_(True) for n in names]
 
     def f(*x):
-        out = rasterize(Surfels(means, *x), cam, backend=native_backend)
+        out = rasterize(Surfels(means, **dict(zip(names, x)), **fixed), cam, backend=native_backend)
         return tuple(getattr(out, k) * w for k, w in zip(FIELDS, (1.0, 0.7, 0.3, 0.2, 0.5, 2.0)))
 
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)

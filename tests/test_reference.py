@@ -30,6 +30,44 @@ def test_gradcheck_every_output_every_field(k):
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-3, nondet_tol=0.0)
 
 
+def test_gradcheck_the_beta_falloff():
+    """The Beta kernel (1 - s rho/2)^(1/s): every field, the exponents among them (common.falloff)."""
+    s, cam = random_scene(8, 1, width=8, height=8, seed=12, dtype=torch.float64, pixel_sigma=(1.0, 2.5))
+    s.means = s.means * 0.4
+    s.falloff = torch.tensor([0.05, 0.3, 0.9, 0.5, 0.02, 0.7, 0.2, 1.0], dtype=torch.float64)
+    names = FIELDS + ["falloff"]
+    inputs = [getattr(s, f).clone().requires_grad_(True) for f in names]
+
+    def fn(*xs):
+        out = rasterize_reference(Surfels(**dict(zip(names, xs))), cam)
+        return tuple(getattr(out, o) for o in OUTPUTS)
+
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-3, nondet_tol=0.0)
+
+
+def test_the_beta_falloff_profile_and_its_bounded_support():
+    """A face-on surfel with falloff exponent s: alpha = o (1 - s r^2/2)^(1/s) at r sigmas, zero from r = sqrt(2/s)
+    (the Gaussian as s -> 0), and a screen box no wider than that support."""
+    from splatzoo.rasterizers.common import SETTINGS, project
+
+    for s_exp in (0.5, 1.0, 1e-7):
+        s, cam, sigma_px = _face_on(width=41, scale=0.1, opacity=0.8)
+        s.falloff = torch.full_like(s.opacities, s_exp)
+        out = rasterize(s, cam, backend="reference")
+        c = 20
+        r = ((torch.arange(41, dtype=torch.float64) + 0.5 - 20.5) / sigma_px).abs()
+        if s_exp > 1e-3:
+            profile = 0.8 * (1 - s_exp * r ** 2 / 2).clamp_min(0) ** (1 / s_exp)
+        else:
+            profile = 0.8 * torch.exp(-r ** 2 / 2)
+        predicted = torch.where(profile >= 1 / 255, profile, torch.zeros_like(profile))
+        assert torch.allclose(out.alpha[c].double(), predicted, atol=1e-5), s_exp
+        box = project(s, cam, SETTINGS).boxes[0]
+        half_width = float(box[2] - box[0]) / 2
+        support = sigma_px * math.sqrt(2 / s_exp) if s_exp > 1e-3 else math.inf
+        assert half_width <= support * 1.01 + 0.5
+
+
 def _face_on(width, scale, opacity, k_vectors=(), dist=3.0, fov=40.0):
     cam = Camera.look_at([0.0, 0.0, -dist], [0.0, 0.0, 0.0], width=width, height=width, fov_deg=fov)
     s = single_surfel(normal=(0.0, 0.0, -1.0), scale=(scale, scale), opacity=opacity, k_vectors=k_vectors)
@@ -89,7 +127,7 @@ def test_stability_at_the_extremes(case, any_backend):
     if cam.width * cam.height > 100_000 and any_backend.name in ("reference", "cuda-emulated"):
         cam = cam.scaled(0.25)  # the slow backends take the full-HD case at 480x270
     dev = any_backend.torch_device()
-    inputs = {f: getattr(s, f).clone().to(dev).requires_grad_(True) for f in FIELDS}
+    inputs = {f: getattr(s, f).clone().to(dev).requires_grad_(True) for f in FIELDS + ["falloff"]}
     out = rasterize(Surfels(**inputs), cam, backend=any_backend)
     for o in OUTPUTS:
         v = getattr(out, o)

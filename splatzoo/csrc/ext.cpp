@@ -174,7 +174,8 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector
     const int threads = at::get_num_threads();
     auto f = means.options();
     auto i32 = f.dtype(at::kInt);
-    const Tensor &m = means, &q = surfels.at("quats"), &sc = surfels.at("scales"), &op = surfels.at("opacities");
+    const Tensor &m = means, &q = surfels.at("quats"), &sc = surfels.at("scales"), &op = surfels.at("opacities"),
+                 &fo = surfels.at("falloff");
 
     // 1. project every surfel: T, centre, depth, normal, exact screen box, visibility
     Tensor T = at::empty({N, 3, 3}, f), center = at::empty({N, 2}, f), depth = at::empty({N}, f);
@@ -182,7 +183,7 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_project", [&] {
         sz::ProjectArgs<scalar_t> a{st, camera_args<scalar_t>(KR, Kt, eye, W, H), N, m.data_ptr<scalar_t>(),
                                     q.data_ptr<scalar_t>(), sc.data_ptr<scalar_t>(), op.data_ptr<scalar_t>(),
-                                    T.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+                                    fo.data_ptr<scalar_t>(), T.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
                                     normal.data_ptr<scalar_t>(), boxes.data_ptr<scalar_t>(), visible.data_ptr<bool>()};
         if (dev == Device::Cpu)
             sz::cpu_project<scalar_t>(a, threads);

@@ -24,7 +24,7 @@ struct ProjectArgs {
     Settings st;
     CameraArgs<S> cam;
     int64_t N;
-    const S *means, *quats, *scales, *opac;
+    const S *means, *quats, *scales, *opac, *falloff;
     S *T, *center, *depth, *normal, *boxes;
     bool* visible;
 };
@@ -145,7 +145,7 @@ SZ_HD void finalize_surfel(const SurfelArgs<S>& s, const GradArgs<S>& g, int64_t
     const int K = s.K;
     finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, s.wave_vectors + 2 * K * i, s.wave_amplitudes + 3 * K * i,
                    row, K, g.v_T + 9 * i, g.v_center + 2 * i, g.v_depth_c + i, g.v_normal_c + 3 * i,
-                   g.v_opacities + i, g.v_base_color + 3 * i, g.v_wave_vectors + 2 * K * i,
+                   g.v_opacities + i, g.v_falloff + i, g.v_base_color + 3 * i, g.v_wave_vectors + 2 * K * i,
                    g.v_wave_phases + K * i, g.v_wave_amplitudes + 3 * K * i);
 }
 

@@ -31,7 +31,7 @@ struct TileScratch {
     alignas(64) S v[TILE_PIXELS];
     alignas(64) S z[TILE_PIXELS];
     // the anti-aliased backward's per-pixel footprint values (PairEval)
-    alignas(64) S ex[TILE_PIXELS], inv[TILE_PIXELS], xu[TILE_PIXELS], xv[TILE_PIXELS];
+    alignas(64) S ex[TILE_PIXELS], q[TILE_PIXELS], inv[TILE_PIXELS], xu[TILE_PIXELS], xv[TILE_PIXELS];
     alignas(64) S j00[TILE_PIXELS], j01[TILE_PIXELS], j10[TILE_PIXELS], j11[TILE_PIXELS];
     alignas(64) S p00[TILE_PIXELS], p01[TILE_PIXELS], p11[TILE_PIXELS], idet[TILE_PIXELS];
     // the anti-aliased backward's cotangents of each pair's alpha, depth and colour point (PairCotangents; 0 where
@@ -40,8 +40,8 @@ struct TileScratch {
 };
 
 // Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z per pixel (KEEP: and the footprint values
-// the anti-aliased backward needs).
-template <bool FILTERED, bool KEEP, class S>
+// the anti-aliased backward needs). BETA: the surfel's falloff is the Beta kernel (falloff in surfel_math.h).
+template <bool FILTERED, bool KEEP, bool BETA, class S>
 __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Geom<S>& g, const S* xs, S y0, int r0,
                                               int r1, TileScratch<S>& sc) {
     const Geom<S> gl = g;  // local copies let the compiler keep every field in a register
@@ -53,15 +53,16 @@ __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Ge
         for (int c = 0; c < TILE; ++c) {
             PairEval<S> e;
             if constexpr (FILTERED)
-                eval_pair_filtered(st, gl, xs[c], y, e);
+                eval_pair_filtered<BETA>(st, gl, xs[c], y, e);
             else
-                eval_pair(st, gl, xs[c], y, e);
+                eval_pair<BETA>(st, gl, xs[c], y, e);
             sc.alpha[o + c] = e.alpha;
             sc.u[o + c] = e.u;
             sc.v[o + c] = e.v;
             sc.z[o + c] = e.z;
             if constexpr (KEEP) {
                 sc.ex[o + c] = e.ex;
+                sc.q[o + c] = e.rho;
                 sc.inv[o + c] = e.inv;
                 sc.xu[o + c] = e.xu;
                 sc.xv[o + c] = e.xv;
@@ -82,12 +83,16 @@ __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Ge
 template <class S>
 void eval_rows(const Settings& st, const Geom<S>& g, const S* xs, S y0, int r0, int r1, TileScratch<S>& sc,
                bool keep) {
+    const bool beta = g.s > S(0);
     if (st.pixel_filter > 0 && keep)
-        eval_rows_impl<true, true>(st, g, xs, y0, r0, r1, sc);
+        beta ? eval_rows_impl<true, true, true>(st, g, xs, y0, r0, r1, sc)
+             : eval_rows_impl<true, true, false>(st, g, xs, y0, r0, r1, sc);
     else if (st.pixel_filter > 0)
-        eval_rows_impl<true, false>(st, g, xs, y0, r0, r1, sc);
+        beta ? eval_rows_impl<true, false, true>(st, g, xs, y0, r0, r1, sc)
+             : eval_rows_impl<true, false, false>(st, g, xs, y0, r0, r1, sc);
     else
-        eval_rows_impl<false, false>(st, g, xs, y0, r0, r1, sc);
+        beta ? eval_rows_impl<false, false, true>(st, g, xs, y0, r0, r1, sc)
+             : eval_rows_impl<false, false, false>(st, g, xs, y0, r0, r1, sc);
 }
 
 // The slots geom_backward_filtered writes (a prefix of the row; G_BASE..G_NORMAL are colour slots it leaves alone,
@@ -133,6 +138,7 @@ __attribute__((noinline)) void geom_rows_filtered(const Settings& settings, cons
             e.u = on ? sc.u[p] : S(0);
             e.v = on ? sc.v[p] : S(0);
             e.ex = on ? sc.ex[p] : S(0);
+            e.rho = on ? sc.q[p] : S(0);
             e.raw = rmul(gl.o, e.ex);
             e.xu = on ? sc.xu[p] : S(0);
             e.xv = on ? sc.xv[p] : S(0);
@@ -232,7 +238,7 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
                 const S a = sc.alpha[p];
                 if (a == S(0) || q.rel >= px[p].last) continue;
                 PairEval<S> e;
-                if constexpr (!FILTERED) eval_pair(q.st, q.g, sc.xs[c], q.y0 + S(r), e);  // its hit or the filter
+                if constexpr (!FILTERED) eval_pair_any(q.st, q.g, sc.xs[c], q.y0 + S(r), e);  // its hit or the filter
                 // the decision and the values blended come from eval_rows, as in the forward
                 e.alpha = a;
                 e.u = sc.u[p];
@@ -270,7 +276,7 @@ int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfe
 #pragma omp parallel for num_threads(threads) schedule(static)
     for (int r = 0; r < M; ++r) {
         const int64_t i = s.order[r];
-        prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i],
+        prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i], s.falloff[i],
                      *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
         box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     }
@@ -435,7 +441,7 @@ template <class S>
 void cpu_project(const ProjectArgs<S>& a, int threads) {
 #pragma omp parallel for schedule(static) num_threads(threads) if (a.N > 4096)
     for (int64_t i = 0; i < a.N; ++i)
-        a.visible[i] = project_surfel(a.st, a.cam, a.means + 3 * i, a.quats + 4 * i, a.scales + 2 * i, a.opac[i],
+        a.visible[i] = project_surfel(a.st, a.cam, a.means + 3 * i, a.quats + 4 * i, a.scales + 2 * i, a.opac[i], a.falloff[i],
                                       a.T + 9 * i, a.center + 2 * i, a.depth + i, a.normal + 3 * i, a.boxes + 4 * i);
 }
 

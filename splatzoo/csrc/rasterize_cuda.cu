@@ -41,7 +41,7 @@ template <class S>
 __global__ void project_kernel(ProjectArgs<S> a) {
     const int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x;
     if (i >= a.N) return;
-    a.visible[i] = project_surfel(a.st, a.cam, a.means + 3 * i, a.quats + 4 * i, a.scales + 2 * i, a.opac[i],
+    a.visible[i] = project_surfel(a.st, a.cam, a.means + 3 * i, a.quats + 4 * i, a.scales + 2 * i, a.opac[i], a.falloff[i],
                                   a.T + 9 * i, a.center + 2 * i, a.depth + i, a.normal + 3 * i, a.boxes + 4 * i);
 }
 
@@ -59,7 +59,8 @@ __global__ void prepare_kernel(SurfelArgs<S> s, S* geom, int* bounds, int* tile_
     const int r = blockIdx.x * blockDim.x + threadIdx.x;
     if (r >= s.M) return;
     const int64_t i = s.order[r];
-    prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i], *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
+    prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i], s.falloff[i],
+                 *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
     box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     tile_count[r] = int(tile_range(bounds + 4 * i).count());
 }

@@ -16,7 +16,7 @@ struct SurfelFieldInfo {
     int dims[3];  // SZ_K: K
 };
 
-constexpr int NUM_SURFEL_FIELDS = 8;
+constexpr int NUM_SURFEL_FIELDS = 9;
 constexpr SurfelFieldInfo SURFEL_FIELD_INFO[NUM_SURFEL_FIELDS] = {
     {"means", Role::geometry, 1, {3, 0, 0}},  // centre in world space
     {"quats", Role::geometry, 1, {4, 0, 0}},  // rotation (w, x, y, z), need not be normalised
@@ -26,11 +26,12 @@ constexpr SurfelFieldInfo SURFEL_FIELD_INFO[NUM_SURFEL_FIELDS] = {
     {"wave_vectors", Role::appearance, 2, {SZ_K, 2, 0}},  // k_k, radians per sigma
     {"wave_phases", Role::appearance, 1, {SZ_K, 0, 0}},  // phi_k, radians
     {"wave_amplitudes", Role::appearance, 2, {SZ_K, 3, 0}},  // a_k, colour per wave
+    {"falloff", Role::opacity, 0, {0, 0, 0}},  // falloff exponent s: 0 the Gaussian exp(-rho/2), else the Beta kernel (1 - s rho/2)^(1/s)
 };
 
 }  // namespace sz
 
 // X(name) for every field, in table order
-#define SZ_SURFEL_FIELDS(X) X(means) X(quats) X(scales) X(opacities) X(base_color) X(wave_vectors) X(wave_phases) X(wave_amplitudes)
+#define SZ_SURFEL_FIELDS(X) X(means) X(quats) X(scales) X(opacities) X(base_color) X(wave_vectors) X(wave_phases) X(wave_amplitudes) X(falloff)
 // X(name) for the fields the tile loops read per (surfel, pixel) pair (every role but geometry)
-#define SZ_PAIR_FIELDS(X) X(opacities) X(base_color) X(wave_vectors) X(wave_phases) X(wave_amplitudes)
+#define SZ_PAIR_FIELDS(X) X(opacities) X(base_color) X(wave_vectors) X(wave_phases) X(wave_amplitudes) X(falloff)

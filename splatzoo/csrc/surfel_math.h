@@ -38,7 +38,7 @@ constexpr int TILE_PIXELS = TILE * TILE;
 
 // Per-surfel geometry prepared once per render (prepare_geom): GEOM scalars, in this order. (The CUDA kernels
 // stage BLOCK of them in shared memory, at most 48 KB a block: 21 doubles each is the most that fits.)
-constexpr int GEOM = 19;
+constexpr int GEOM = 20;
 template <class S>
 struct Geom {
     S A[3], B[3], C[3];  // c(x, y) = (x - cx) A + (y - cy) B + C   (the cross product h_x x h_y, expanded)
@@ -46,6 +46,7 @@ struct Geom {
     S m3[3];             // third row of T: hit depth z = m3 . (u, v, 1)
     S o;                 // opacity
     S blur[3];           // anti-aliased: the waves' blur I - (I + S)^-1, S the footprint at the centre (else 0)
+    S s;                 // falloff exponent: 0 the Gaussian, > 0 the Beta kernel (falloff below)
 };
 
 // Gradient slots of one surfel row.
@@ -61,7 +62,8 @@ enum : int {
     G_NORMAL = 19,  // dL/d surfel normal                  (3)
     G_A = 22,       // dL/dA through the footprint's Jacobian (3; anti-aliased only)
     G_B = 25,       // dL/dB through the footprint's Jacobian (3; anti-aliased only)
-    G_WAVES = 28,   // per wave: d k_x, d k_y, d phi (the wave's phase only), d a (3)
+    G_S = 28,       // dL/d falloff exponent                (1)
+    G_WAVES = 29,   // per wave: d k_x, d k_y, d phi (the wave's phase only), d a (3)
 };
 // Anti-aliased, a wave's gain exp(-k^T b k / 2) has the same blur b (the surfel's) at every pixel, so its gradients
 // into k and b are per-surfel factors times the sum over pixels of dL/d gain x gain, which is a . (d a):
@@ -174,6 +176,13 @@ SZ_HD void sz_sincos(float x, float& s, float& c) { sincos_poly(x, s, c); }
 SZ_HD void sz_sincos(double x, double& s, double& c) {
     s = sin(x);
     c = cos(x);
+}
+
+// ---- the kernel falloff's support (the falloff itself is below, after rmul) ------------------------------------
+// The support of opacity o: rho <= 2 ln(o / alpha_min) for the Gaussian, (2/s)(1 - (alpha_min / o)^s) for the Beta
+// kernel (contributions below alpha_min are skipped). log_o = ln(o / alpha_min) > 0.
+SZ_HD double support_rho(double log_o, double s) {
+    return s > 0.0 ? -2.0 * expm1(-s * log_o) / s : 2.0 * log_o;
 }
 
 // ---- projection: the camera-dependent set-up of common.project and common.screen_boxes ------------------------
@@ -314,8 +323,8 @@ SZ_HD double camera_coord(const CameraArgs<S>& cam, const S* mean, int i) {
 // conic, united with the screen filter's disc, padded for rounding). Returns whether the surfel is visible.
 // The support: a contribution is skipped when o exp(-rho/2) < alpha_min, i.e. outside rho <= 2 ln(o / alpha_min).
 template <class S>
-SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S* mean, const S* quat, const S* scale, S opacity, S* T9,
-                          S* center, S* depth, S* normal, S* box) {
+SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S* mean, const S* quat, const S* scale, S opacity,
+                          S falloff_s, S* T9, S* center, S* depth, S* normal, S* box) {
     S R[9], qn[4], qnorm;
     quat_rotmat(quat, R, qn, qnorm);
     const S* KR = cam.KR;
@@ -338,7 +347,7 @@ SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S*
     const S o = smin(smax(opacity, S(0)), S(1));
     const S log_o = log(smax(o / S(st.alpha_min), S(1e-30)));
     const bool visible = cz > S(st.near) && log_o > S(0);
-    const S r2 = smax(S(2) * log_o, S(0));
+    const S r2 = log_o > S(0) ? S(support_rho(double(log_o), double(falloff_s))) : S(0);
     const S big = S(double(cam.W > cam.H ? cam.W : cam.H) * 4 + 1e4);
     S b[4];
     conic_box(T9, r2, S(0), S(0), S(0), big, b);  // the disc's image
@@ -358,7 +367,7 @@ SZ_HD bool project_surfel(const Settings& st, const CameraArgs<S>& cam, const S*
         const S py = (S(FOOTPRINT_PAD) * (b[3] - b[1]) + S(FOOTPRINT_PAD_PX)) * S(tilt);
         b[0] -= px; b[1] -= py; b[2] += px; b[3] += py;
     } else {
-        const S rf = sqrt(smax(log_o, S(0)) / S(st.filter_inv_sq / 2));
+        const S rf = sqrt(r2 / S(st.filter_inv_sq));  // the screen filter's rho2 = F |d|^2 within the support
         b[0] = nan_min(b[0], center[0] - rf);
         b[1] = nan_min(b[1], center[1] - rf);
         b[2] = nan_max(b[2], center[0] + rf);
@@ -478,7 +487,8 @@ SZ_HD PlaneCoeffs plane_coeffs(const S* T9, const S* center) {
 // 6 multiply-adds and removes the cancellation the per-pixel form suffers far from the image origin. A, B, C are
 // stored scaled (plane_coeffs); finalize_grads scales their gradients back.
 template <class S>
-SZ_HD void prepare_geom(const Settings& st, const S* T9, const S* center, S depth, S opacity, Geom<S>& g) {
+SZ_HD void prepare_geom(const Settings& st, const S* T9, const S* center, S depth, S opacity, S falloff_s,
+                        Geom<S>& g) {
     const PlaneCoeffs p = plane_coeffs(T9, center);
     for (int i = 0; i < 3; ++i) {
         g.A[i] = S(p.A[i] * p.scale);
@@ -490,6 +500,7 @@ SZ_HD void prepare_geom(const Settings& st, const S* T9, const S* center, S dept
     g.cy = center[1];
     g.zc = depth;
     g.o = opacity;
+    g.s = falloff_s;
     g.blur[0] = g.blur[1] = g.blur[2] = S(0);
     if (st.pixel_filter > 0) {
         const CentreFootprint fp = centre_footprint(st, T9, center);
@@ -504,7 +515,8 @@ struct PairEval {
     S c0, c1, c2;  // c = h_x x h_y
     S u, v, z;     // local coordinates used for colour (0 where the filter wins; the footprint's P x when
                    // anti-aliased) and the depth there
-    S ex, raw;     // exp(-rho/2) (anti-aliased: det(I + S)^-1/2 exp(-q/2)) and o * ex before the clamp
+    S rho;         // rho = u^2 + v^2 at the hit, or the screen filter's (anti-aliased: the footprint's q)
+    S ex, raw;     // f(rho) (anti-aliased: det(I + S)^-1/2 f(q)) and o * ex before the clamp
     S alpha;       // final alpha, 0 where skipped (alpha < alpha_min or z < near)
     bool use3;     // the ray-splat hit (rho3d) won over the screen filter (rho2d); always, when anti-aliased
     // anti-aliased only (see eval_pair_filtered): 1 / c2, the hit x, the Jacobian d(u, v)/d(pixel),
@@ -525,6 +537,37 @@ SZ_HD double radd(double a, double b) { return __dadd_rn(a, b); }
 template <class S> SZ_HD S rmul(S a, S b) { return a * b; }
 template <class S> SZ_HD S radd(S a, S b) { return a + b; }
 #endif
+
+// ---- the kernel falloff, a declared part of the appearance contract (common.falloff is its twin) ----------------
+// f(rho) over rho = u^2 + v^2 in sigmas squared (anti-aliased: the footprint's q): the Gaussian exp(-rho/2) where the
+// surfel's falloff exponent s is 0, else the Beta kernel (1 - s rho/2)_+^(1/s), 0 < s <= 1: Deformable Beta
+// Splatting's (1 - r^2)^b with b = 1/s and r^2 = s rho/2, 0 beyond rho = 2/s, the Gaussian again as s -> 0. BETA
+// picks the branch at compile time (one surfel at a time: its pixel loop stays branch-free).
+template <bool BETA, class S>
+SZ_HD S falloff(S rho, S s) {
+    if constexpr (!BETA) {
+        return sz_exp(rmul(S(-0.5), rho));
+    } else {
+        const S x = rmul(rmul(S(0.5), s), rho);  // ln f = log1p(-x) / s: accurate for a small s, where w = 1 - x
+        const S f = sz_exp(log1p(x < S(1) ? -x : S(0)) / s);  //   rounds to 1
+        return x < S(1) ? f : S(0);
+    }
+}
+
+// d ln f / d rho and d ln f / d s where f > 0: -1/(2w) and -ln(w)/s^2 - rho/(2 s w), w = 1 - x, x = s rho/2. The
+// second is a series where x is small (its two terms cancel): -(rho/2)^2 (1/2 + 2x/3 + 3x^2/4 + 4x^3/5), which at
+// s = 0 is -rho^2/8, the Gaussian's own: a surfel can move from the Gaussian into the Beta family.
+template <class S>
+SZ_HD void falloff_dlog(S rho, S s, S& d_rho, S& d_s) {
+    const S x = rmul(rmul(S(0.5), s), rho), h = S(0.5) * rho;
+    const S w = S(1) - x;
+    const S ws = w > S(1e-30) ? w : S(1e-30);
+    const S series = -(h * h) * (S(0.5) + x * (S(2.0 / 3.0) + x * (S(0.75) + x * S(0.8))));
+    const S ss = s > S(0) ? s : S(1);
+    const S closed = -log1p(x < S(1) ? -x : S(0)) / (ss * ss) - h / (ss * ws);
+    d_s = x < S(1e-2) ? series : closed;
+    d_rho = S(-0.5) / ws;
+}
 
 // The pixel's ray against the surfel's plane: d = pixel - centre, c = h_x x h_y, whether the ray hits the plane and
 // inv = 1 / c2 where it does (else 0). Branch-free, as everything a pixel loop calls, so that the loop vectorises.
@@ -560,7 +603,7 @@ SZ_HD S pair_alpha(const Settings& st, S raw, S z) {
     return z >= S(st.near) ? a : S(0);
 }
 
-template <class S>
+template <bool BETA = false, class S>
 SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
     const PixelRay<S> ray = pixel_ray(st, g, x, y);
     const S dx = ray.dx, dy = ray.dy, c0 = ray.c0, c1 = ray.c1, c2 = ray.c2, inv = ray.inv;
@@ -573,10 +616,10 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
     S u = use3 ? uu : S(0);
     S v = use3 ? vv : S(0);
     S z = use3 ? radd(radd(rmul(g.m3[0], u), rmul(g.m3[1], v)), g.m3[2]) : g.zc;
-    S ex = sz_exp(rmul(S(-0.5), rho));
+    S ex = falloff<BETA>(rho, g.s);
     S raw = rmul(g.o, ex);
     e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
-    e.u = u; e.v = v; e.z = z; e.ex = ex; e.raw = raw;
+    e.u = u; e.v = v; e.z = z; e.rho = rho; e.ex = ex; e.raw = raw;
     e.alpha = pair_alpha(st, raw, z);
     e.use3 = use3;
 }
@@ -592,7 +635,7 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
 // column x row products cancel: N00 = A0 c2 - A2 c0 = dy (A0 B2 - A2 B0) + (A0 C2 - A2 C0) depends on the row only,
 // N01 = dx (B0 A2 - B2 A0) + (B0 C2 - B2 C0) on the column only (N10, N11 alike), so a pixel loop pays one product
 // for each. P x and x^T P x are taken as adj(I + S) x / det: the division runs beside the products.
-template <class S>
+template <bool BETA = false, class S>
 SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
     const PixelRay<S> ray = pixel_ray(st, g, x, y);
     const S dx = ray.dx, dy = ray.dy, c0 = ray.c0, c1 = ray.c1, c2 = ray.c2, inv = ray.inv;
@@ -628,10 +671,10 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     gain = hit ? gain : S(0);
     gain = keep ? gain : S(0);
     gain = linear ? gain : S(0);  // one comparison per select: combined conditions become branches (no vectors)
-    S ex = rmul(gain, sz_exp(rmul(S(-0.5), q)));
+    S ex = rmul(gain, falloff<BETA>(q, g.s));
     S raw = rmul(g.o, ex);
     e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
-    e.u = mu; e.v = mv; e.z = z; e.ex = ex; e.raw = raw;
+    e.u = mu; e.v = mv; e.z = z; e.rho = q; e.ex = ex; e.raw = raw;
     e.alpha = pair_alpha(st, raw, z);
     e.use3 = true;
     e.xu = xu; e.xv = xv; e.j00 = j00; e.j01 = j01; e.j10 = j10; e.j11 = j11;
@@ -642,9 +685,9 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
 template <class S>
 SZ_HD void eval_pair_any(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
     if (st.pixel_filter > 0)
-        eval_pair_filtered(st, g, x, y, e);
+        g.s > S(0) ? eval_pair_filtered<true>(st, g, x, y, e) : eval_pair_filtered<false>(st, g, x, y, e);
     else
-        eval_pair(st, g, x, y, e);
+        g.s > S(0) ? eval_pair<true>(st, g, x, y, e) : eval_pair<false>(st, g, x, y, e);
 }
 
 // Footprint attenuation of wave (kx, ky) under the blur (b00, b01, b11): exp(-k^T b k / 2).
@@ -798,8 +841,12 @@ template <class S, class Acc>
 SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S v_alpha, S v_z, S v_u, S v_v,
                          Acc& acc) {
     const bool clamped = e.raw > S(st.alpha_max);  // torch.clamp passes the gradient only where input <= max
-    const S v_rho = clamped ? S(0) : S(-0.5) * v_alpha * e.raw;
+    S d_rho, d_s;
+    falloff_dlog(e.rho, g.s, d_rho, d_s);
+    const S v_lnf = clamped ? S(0) : v_alpha * e.raw;  // dL/d ln f
+    const S v_rho = v_lnf * d_rho;
     acc(G_O, clamped ? S(0) : v_alpha * e.ex);
+    acc(G_S, v_lnf * d_s);
     // the ray-splat hit won (use3): rho = u^2 + v^2 at the hit, whose depth is m3 . (u, v, 1)
     const bool hit = e.use3;
     v_u += S(2) * e.u * v_rho + v_z * g.m3[0];
@@ -830,7 +877,10 @@ SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const Pa
     const bool clamped = e.raw > S(st.alpha_max);
     const S v_raw = clamped ? S(0) : v_alpha;
     acc(G_O, v_raw * e.ex);
-    const S v_q = S(-0.5) * v_raw * e.raw;  // raw = o det^-1/2 exp(-q/2)
+    S d_q, d_s;
+    falloff_dlog(e.rho, g.s, d_q, d_s);
+    const S v_q = v_raw * e.raw * d_q;  // raw = o det^-1/2 f(q)
+    acc(G_S, v_raw * e.raw * d_s);
     // z = m3 . (P x, 1)
     v_mu += v_z * g.m3[0];
     v_mv += v_z * g.m3[1];
@@ -982,8 +1032,8 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
 // centre.
 template <class S, class R>
 SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const S* wv, const S* wa, const R* Gs,
-                          int K, S* v_T, S* v_center, S* v_depth, S* v_normal, S* v_opac, S* v_base, S* v_wv, S* v_wp,
-                          S* v_wa) {
+                          int K, S* v_T, S* v_center, S* v_depth, S* v_normal, S* v_opac, S* v_falloff, S* v_base,
+                          S* v_wv, S* v_wp, S* v_wa) {
     double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
     double cx = double(center[0]), cy = double(center[1]);
     // the slots hold gradients of the scaled A, B, C the pixels saw (prepare_geom)
@@ -1056,6 +1106,7 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
     v_center[1] = S(v_cy);
     v_depth[0] = S(Gs[G_ZC]);
     v_opac[0] = S(Gs[G_O]);
+    v_falloff[0] = S(Gs[G_S]);
 }
 
 // Pixel range [x0, x1] x [y0, y1] (inclusive, clamped to the image; empty if x0 > x1 or y0 > y1) of the pixel

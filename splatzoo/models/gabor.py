@@ -264,7 +264,7 @@ class GaborModel(SurfelModel):
         limit = MAX_WAVE_NUMBER / (2 * math.pi) * (1 - 1e-5)  # float's products may round up
         vectors = (2 * math.pi) * self.wave_freqs.clamp(-limit, limit)[..., None] * directions
         return Surfels(g["means"], g["quats"], g["scales"], g["opacities"], base, vectors, self.phases(), amplitudes,
-                       counts)
+                       wave_counts=counts)
 
     def optim_groups(self, scene_extent: float) -> list[dict]:
         if self.residual:

@@ -96,17 +96,40 @@ def project(s: Surfels, cam: Camera, settings: RasterSettings = SETTINGS) -> Pro
     view = s.means - cam64.center.to(dtype)
     facing = ((tw * view).sum(-1, keepdim=True) > 0).to(tw.dtype)
     normal = tw * (1 - 2 * facing)
-    boxes, visible = screen_boxes(T.detach(), center_px.detach(), depth.detach(), s.opacities.detach(), cam, settings)
+    boxes, visible = screen_boxes(T.detach(), center_px.detach(), depth.detach(), s.opacities.detach(), cam, settings,
+                                  s.falloff.detach())
     return Projected(T, center_px, depth, normal, boxes, visible)
 
 
+def falloff(rho: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """The kernel falloff f(rho) (csrc/surfel_math.h falloff, the same maths): exp(-rho/2) where the falloff exponent
+    s is 0, the Beta kernel (1 - s rho/2)_+^(1/s) where 0 < s <= 1. Where s = 0 the Gaussian carries a term
+    -s rho^2/8 in its exponent, 0 in value, so that d f/ds there is the Beta kernel's limit, as in the native
+    backward (a surfel can move from the Gaussian into the Beta family)."""
+    beta = s > 0
+    x = 0.5 * s * rho
+    inside = beta & (x < 1)
+    s_safe = torch.where(beta, s, torch.ones_like(s))
+    log_f = torch.log1p(-torch.where(inside, x, torch.zeros_like(x))) / s_safe
+    b = torch.where(inside, torch.exp(log_f), torch.zeros_like(x))
+    r = rho.clamp(max=1e15)  # keeps s r^2 at 0 (not NaN) for an unbounded rho
+    return torch.where(beta, b, torch.exp(-0.5 * rho - s * r * r / 8))
+
+
+def support_rho(log_o: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """rho where o f(rho) falls to alpha_min (log_o = ln(o / alpha_min) > 0): 2 log_o for the Gaussian,
+    (2/s)(1 - (alpha_min / o)^s) for the Beta kernel."""
+    beta = s > 0
+    return torch.where(beta, -2 * torch.expm1(-s * log_o) / torch.where(beta, s, torch.ones_like(s)), 2 * log_o)
+
+
 @torch.no_grad()
-def screen_boxes(T, center_px, depth, opacities, cam: Camera, settings: RasterSettings = SETTINGS):
+def screen_boxes(T, center_px, depth, opacities, cam: Camera, settings: RasterSettings = SETTINGS, falloffs=None):
     """Exact screen bounds of each surfel's support.
 
-    A contribution is skipped when o exp(-rho/2) < alpha_min, so the support is the disc u^2+v^2 <= r^2 with
-    r^2 = 2 ln(o / alpha_min), together with the filter disc |d|^2 <= ln(o / alpha_min) / (filter_inv_sq / 2) around the
-    projected centre. Bounding both exactly means the boxes only save work and never change a pixel.
+    A contribution is skipped when o f(rho) < alpha_min, so the support is the disc u^2+v^2 <= r^2 with
+    r^2 = support_rho (2 ln(o / alpha_min) for the Gaussian), together with the filter disc |d|^2 <= r^2 / filter_inv_sq
+    around the projected centre. Bounding both exactly means the boxes only save work and never change a pixel.
     The disc's image is a conic; if the disc reaches the camera plane it is unbounded and we use the
     whole image. Anti-aliased, the support is the footprint-widened one (no screen filter), bounded as described in
     the code; there the boxes also bound what the rasterizers shade (see FOOTPRINT_PAD).
@@ -114,7 +137,8 @@ def screen_boxes(T, center_px, depth, opacities, cam: Camera, settings: RasterSe
     n = T.shape[0]
     log_o = torch.log((opacities.clamp(0, 1) / settings.alpha_min).clamp_min(1e-30))
     visible = (depth > settings.near) & (log_o > 0)
-    r2 = (2 * log_o).clamp_min(0)
+    s = torch.zeros_like(log_o) if falloffs is None else falloffs.to(log_o)
+    r2 = torch.where(log_o > 0, support_rho(log_o.clamp_min(0), s), torch.zeros_like(log_o))
     big = float(max(cam.width, cam.height)) * 4 + 1e4
     inf_box = torch.tensor([-big, -big, big, big], dtype=T.dtype, device=T.device).expand(n, 4)
     zero = torch.zeros_like(r2)
@@ -131,7 +155,7 @@ def screen_boxes(T, center_px, depth, opacities, cam: Camera, settings: RasterSe
         pad = (FOOTPRINT_PAD * (support[:, 2:] - support[:, :2]) + FOOTPRINT_PAD_PX) * tilt[:, None]
         boxes = torch.cat([support[:, :2] - pad, support[:, 2:] + pad], -1)
     else:
-        rf = torch.sqrt(log_o.clamp_min(0) / (settings.filter_inv_sq / 2))
+        rf = torch.sqrt(r2 / settings.filter_inv_sq)
         filt = torch.cat([center_px - rf[:, None], center_px + rf[:, None]], -1)
         boxes = torch.cat([torch.minimum(disc[:, :2], filt[:, :2]), torch.maximum(disc[:, 2:], filt[:, 2:])], -1)
     boxes = torch.nan_to_num(boxes, nan=0.0, posinf=big, neginf=-big).clamp(-big, big)

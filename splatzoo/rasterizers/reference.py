@@ -9,8 +9,8 @@ from __future__ import annotations
 import torch
 
 from ..types import Camera, RenderOutput, Surfels
-from .common import (LINEAR_LIMIT, SETTINGS, Projected, RasterSettings, background_tensor, centre_footprint, ndc_depth,
-                     project)
+from .common import (LINEAR_LIMIT, SETTINGS, Projected, RasterSettings, background_tensor, centre_footprint, falloff,
+                     ndc_depth, project)
 
 # (pixel, surfel, wave) triples evaluated at once; bounds memory with autograd to a few hundred MB.
 PAIR_BUDGET = 1 << 19
@@ -123,7 +123,7 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         gain, q, (u, v) = footprint_filter(u, v, jac, st, hits & linear)
         blur = waves_blur(T, proj.center_px[idx], st)
         z = m3[:, 0] * u + m3[:, 1] * v + m3[:, 2]
-        alpha = torch.clamp(s.opacities[idx] * gain * torch.exp(-0.5 * q), max=st.alpha_max)
+        alpha = torch.clamp(s.opacities[idx] * gain * falloff(q, s.falloff[idx]), max=st.alpha_max)
         # the culling box bounds the support (common.FOOTPRINT_PAD): a pixel outside it is not shaded, as in the
         # tile loops, even where a nearly edge-on surfel's footprint would leave a faint fringe beyond it
         box = proj.boxes[idx]
@@ -139,7 +139,7 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         u = torch.where(use3d, u, torch.zeros_like(u))
         v = torch.where(use3d, v, torch.zeros_like(v))
         z = torch.where(use3d, m3[:, 0] * u + m3[:, 1] * v + m3[:, 2], proj.depth[idx].expand_as(u))
-        alpha = torch.clamp(s.opacities[idx] * torch.exp(-0.5 * rho), max=st.alpha_max)
+        alpha = torch.clamp(s.opacities[idx] * falloff(rho, s.falloff[idx]), max=st.alpha_max)
         valid = (alpha >= st.alpha_min) & (z >= st.near)
     alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
     # front-to-back compositing; a prefix of the surfels is kept until T would fall below t_min
