@@ -166,7 +166,7 @@ def test_spatial_matching_refuses_photos_without_gps(tmp_path):
     with pytest.raises(DataError, match="none of the 3 photos .* carries GPS"):
         run_sfm(photos, tmp_path / "o", matching="spatial", progress=False)
     exif = Image.Exif()
-    exif.get_ifd(0x8825).update({1: "N", 2: (52.0, 31.0, 0.0), 3: "E", 4: (13.0, 24.0, 0.0)})
+    exif.get_ifd(0x8825).update({1: "N", 2: (52.0, 31.0, 0.0), 3: "E", 4: (13.0, 24.0, 0.0), 5: 0, 6: 35.0})
     Image.open(photos / "p0.png").convert("RGB").save(photos / "p0.jpg", exif=exif)
     (photos / "p0.png").unlink()
     with pytest.raises(DataError, match="only 1 of 3 photos"):
@@ -268,3 +268,26 @@ def test_matching_a_pair_list_with_spaces_in_names(orbit_db, tmp_path):
         assert d.num_verified_image_pairs() == 2
     finally:
         d.close()
+
+
+def test_spatial_matching_pairs_photos_by_their_gps(tmp_path):
+    from PIL import Image
+
+    from splatzoo.data import sfm
+    from splatzoo.data.colmap import quiet_colmap
+
+    (tmp_path / "images").mkdir()
+    for i in range(3):   # a few metres apart
+        exif = Image.Exif()
+        exif.get_ifd(0x8825).update({1: "N", 2: (52.0, 31.0, 0.1 * i), 3: "E", 4: (13.0, 24.0, 0.0), 5: 0, 6: 35.0})
+        _png(tmp_path / "p.png", i, 96)
+        Image.open(tmp_path / "p.png").save(tmp_path / "images" / f"p{i}.jpg", exif=exif)
+    sfm.check_spatial(tmp_path / "images", ["p0.jpg", "p1.jpg", "p2.jpg"])
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.use_gpu = False
+    with quiet_colmap(2):
+        pycolmap.extract_features(tmp_path / "db.db", tmp_path / "images", extraction_options=opts,
+                                  device=pycolmap.Device.cpu)
+    choice, pairs = sfm.plan_pairs(sfm.choose_matching(["p0.jpg", "p1.jpg", "p2.jpg"], "spatial"), tmp_path / "db.db",
+                                   tmp_path / "work")
+    assert choice.strategy == "spatial" and len(pairs) == 3

@@ -249,7 +249,7 @@ def _has_gps(path: Path) -> bool:
             gps = im.getexif().get_ifd(0x8825)
     except Exception:
         return False
-    return bool(gps) and 2 in gps and 4 in gps      # GPSLatitude and GPSLongitude
+    return bool(gps) and all(k in gps for k in (2, 4, 6))   # latitude, longitude, altitude: COLMAP reads all three
 
 
 def check_spatial(images: Path, names) -> None:
@@ -257,8 +257,8 @@ def check_spatial(images: Path, names) -> None:
     with_gps = sum(_has_gps(Path(images) / n) for n in names)
     if with_gps == 0:
         raise DataError(f"--matching spatial pairs photos by their GPS positions, but none of the {len(names)} photos "
-                        f"in {images} carries GPS in its EXIF (screenshots, renders and most edited or exported photos "
-                        "lose it); use --matching auto, sequential (frames in order), vocabtree or exhaustive")
+                        f"in {images} carries GPS (latitude, longitude and altitude) in its EXIF (screenshots, renders and "
+                        "most edited or exported photos lose it); use --matching auto, sequential (frames in order), vocabtree or exhaustive")
     if with_gps < len(names):
         raise DataError(f"--matching spatial pairs photos by their GPS positions, but only {with_gps} of {len(names)} "
                         f"photos in {images} carry GPS in their EXIF; the others would match nothing. Use --matching "
@@ -425,8 +425,9 @@ def plan_pairs(choice: MatchingChoice, db_path: Path, work: Path, *, vocab_tree=
         db = pycolmap.Database.open(str(db_path))
         try:
             if db.num_pose_priors() == 0:
-                raise DataError("--matching spatial needs GPS positions, but COLMAP read none from the photos' EXIF; "
-                                "use --matching auto, sequential, vocabtree or exhaustive")
+                raise DataError("--matching spatial needs GPS positions, but COLMAP read none from the photos' EXIF "
+                                "(it needs latitude, longitude and altitude); use --matching auto, sequential, "
+                                "vocabtree or exhaustive")
             gen = pycolmap.SpatialPairGenerator(pycolmap.SpatialPairingOptions(), db)
             pairs = {(min(a, b), max(a, b)) for a, b in gen.all_pairs() if a != b}
         finally:
