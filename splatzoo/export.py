@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
-from .io import atomic_path
+from .io import atomic_path, ply_type_name, read_ply_vertices
 
 FORMAT_VERSION = 1
 
@@ -42,11 +42,6 @@ _PREFIX = {"log_scales": "scale_", "quats": "rot_", "sh_dc": "f_dc_", "sh_rest":
            "wave_freqs": "gabor_freq_", "wave_phases": "gabor_phase_"}
 _CHANNEL_MAJOR = {"sh_rest"}          # 3DGS stores SH bands transposed: [N, 3, bands]
 _DERIVED = ("nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2")  # written for viewers, recomputed on load
-
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
-
 
 def _property_names(name: str, trailing: tuple[int, ...]) -> list[str]:
     """The PLY property names of a per-primitive parameter with shape [N, *trailing]."""
@@ -183,134 +178,6 @@ def save_ply(model, path) -> Path:
 
 # --- reading ------------------------------------------------------------------------------------------------
 
-def _ply_header(path: Path, data: bytes) -> tuple[str, list[str], list[tuple[str, int, list]], int]:
-    """(format, comments, elements as (name, count, [(property, numpy type or None for lists)]), body offset).
-    Every field is checked here, before anything is sized by the counts the header claims."""
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise SplatzooError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
-    newline = data.find(b"\n", end)
-    body_start = len(data) if newline < 0 else newline + 1
-    try:
-        text = data[:end].decode("utf-8")
-    except UnicodeDecodeError:
-        text = None
-    if text is None or "\x00" in text:
-        raise SplatzooError(f"{path}: the PLY header holds binary data, not text; the file is damaged or not a PLY. "
-                            "Export the model again")
-    lines = text.splitlines()
-    if lines[0].strip() != "ply":
-        raise SplatzooError(f"{path} is not a PLY file (its first line is not 'ply')")
-
-    def malformed(number: int, expected: str) -> SplatzooError:
-        return SplatzooError(f"{path}: malformed PLY header line {number + 1} {lines[number].strip()[:80]!r}; expected "
-                             f"{expected}. The file is damaged or not a PLY: export the model again")
-
-    fmt, comments, elements = None, [], []
-    for i, line in enumerate(lines[1:], 1):
-        parts = line.split()
-        if not parts:
-            continue
-        if parts[0] == "format":
-            if len(parts) < 2:
-                raise malformed(i, "'format <ascii|binary_little_endian|binary_big_endian> 1.0'")
-            fmt = parts[1]
-        elif parts[0] == "comment":
-            comments.append(line[len("comment "):])
-        elif parts[0] == "element":
-            if len(parts) != 3 or not re.fullmatch(r"[0-9]+", parts[2]):
-                raise malformed(i, "'element <name> <count>' with a whole count of 0 or more")
-            elements.append((parts[1], int(parts[2]), []))
-        elif parts[0] == "property":
-            if not elements:
-                raise SplatzooError(f"{path}: property before any element in the PLY header")
-            if parts[1:2] == ["list"]:
-                if len(parts) != 5:
-                    raise malformed(i, "'property list <count type> <item type> <name>'")
-                elements[-1][2].append((parts[4], None))
-            elif len(parts) != 3:
-                raise malformed(i, "'property <type> <name>'")
-            elif parts[1] not in _PLY_TYPES:
-                raise SplatzooError(f"{path}: unknown PLY property type {parts[1]!r}")
-            else:
-                elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
-    if fmt is None:
-        raise SplatzooError(f"{path}: the PLY header has no 'format' line; the file is damaged. Export the model again")
-    return fmt, comments, elements, body_start
-
-
-def _ascii_vertices(path: Path, body: bytes, count: int, props: list[tuple[str, str]]) -> np.ndarray:
-    """The first `count` rows of an ASCII body as floats [count, len(props)]; every row must hold a number for each
-    property (extra values on a row are ignored, as before)."""
-    try:
-        text = body.decode("ascii")
-    except UnicodeDecodeError:
-        raise SplatzooError(f"{path}: an ASCII PLY body holds non-ASCII bytes; the file is damaged. "
-                            "Export the model again") from None
-    values = np.empty((count, len(props)), dtype=np.float64)
-    rows = (r for r in text.splitlines() if r.strip())
-    for i in range(count):
-        row = next(rows, None)
-        if row is None:
-            raise SplatzooError(f"{path} is truncated: the header promises {count} vertices but the body holds only "
-                                f"{i} row(s). Export the model again")
-        words = row.split()
-        try:
-            if len(words) < len(props):
-                raise ValueError
-            values[i] = [float(w) for w in words[:len(props)]]
-        except ValueError:
-            raise SplatzooError(f"{path}: vertex row {i + 1} {row.strip()[:80]!r} does not hold {len(props)} numbers "
-                                f"({', '.join(k for k, _ in props[:6])}{' ...' if len(props) > 6 else ''}); "
-                                "the file is damaged. Export the model again") from None
-    return values
-
-
-def read_ply_vertices(path) -> tuple[np.ndarray, list[str]]:
-    """(structured array of the first element's properties, header comments) of a binary or ASCII PLY.
-    The header's counts are checked against the file's size before anything is allocated: a few crafted bytes
-    cannot ask for gigabytes."""
-    path = Path(path)
-    if not path.is_file():
-        raise SplatzooError(f"no PLY file at {path}; pass the file written by `splatzoo export`")
-    data = path.read_bytes()
-    fmt, comments, elements, body_start = _ply_header(path, data)
-    if not elements or elements[0][0] != "vertex":
-        raise SplatzooError(f"{path}: the first PLY element must be 'vertex' (one per primitive)")
-    _, count, props = elements[0]
-    if any(t is None for _, t in props):
-        raise SplatzooError(f"{path}: list properties in the vertex element are not supported")
-    if not props:
-        raise SplatzooError(f"{path}: the vertex element has no properties; export the model again")
-    names = [k for k, _ in props]
-    if len(set(names)) != len(names):
-        twice = sorted({k for k in names if names.count(k) > 1})
-        raise SplatzooError(f"{path}: the vertex property {', '.join(twice)} is declared twice; the file is damaged")
-    body = len(data) - body_start
-    if fmt == "ascii":
-        most = (body + 1) // (2 * len(props))  # a value takes a digit and a separator (the file's last may lack it)
-        if count > most:
-            raise SplatzooError(f"{path} is truncated or its header is wrong: it promises {count} vertices of "
-                                f"{len(props)} values but {body} bytes follow the header (room for at most {most}). "
-                                "Export the model again")
-        values = _ascii_vertices(path, data[body_start:], count, props)
-        arr = np.empty(count, dtype=[(k, t) for k, t in props])
-        for i, (k, t) in enumerate(props):
-            if np.dtype(t).kind != "f" and not np.isfinite(values[:, i]).all():
-                raise SplatzooError(f"{path}: the integer property {k} holds NaN or inf; the file is damaged")
-            arr[k] = values[:, i]
-        return arr, comments
-    if fmt not in ("binary_little_endian", "binary_big_endian"):
-        raise SplatzooError(f"{path}: unsupported PLY format {fmt!r} (ascii, binary_little_endian or "
-                            "binary_big_endian)")
-    endian = "<" if fmt == "binary_little_endian" else ">"
-    dtype = np.dtype([(k, endian + t) for k, t in props])
-    if body < dtype.itemsize * count:
-        raise SplatzooError(f"{path} is truncated: the header promises {count} vertices of {dtype.itemsize} bytes "
-                            f"but the file holds {body} bytes after it. Export the model again")
-    return np.frombuffer(data, dtype=dtype, count=count, offset=body_start), comments
-
-
 def _infer_2dgs(names: list[str], path) -> tuple[str, dict]:
     if "scale_2" in names:
         raise SplatzooError(f"{path} looks like a 3DGS PLY (three scales); splatzoo models are 2D surfels with two "
@@ -387,6 +254,12 @@ def load_ply(path):
             raise SplatzooError(f"{path} lacks the properties {', '.join(missing[:4])}{more} of parameter {pname!r} "
                                 f"of model {model_name!r} {config}; it was not written by "
                                 "`splatzoo export` for this model (or with another config)")
+        if empty.is_floating_point():
+            stored = next((p for p in props if arr.dtype[p].kind != "f"), None)
+            if stored is not None:  # float32 parameters written as int or uchar lose their fractions
+                raise SplatzooError(f"{path}: {stored} is stored as {ply_type_name(arr.dtype[stored])} but holds a "
+                                    f"float parameter ({pname!r}); the file was not written by splatzoo export or is "
+                                    "damaged. Export the model again")
         cols = np.stack([arr[p].astype(np.float32) for p in props], 1) if props else np.zeros((n, 0), np.float32)
         bad = int(np.count_nonzero(~np.isfinite(cols)))
         if bad:

@@ -1,5 +1,6 @@
 """File input and output in one place: atomic writes (a temporary file beside the target, renamed over it), JSON
-without non-finite numbers, and torch files read without running code."""
+without non-finite numbers, torch files read without running code, and PLY vertex lists read without trusting their
+header (models in splatzoo.export, point clouds in splatzoo.data)."""
 from __future__ import annotations
 
 import errno
@@ -134,3 +135,176 @@ def _jsonable(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"cannot store {type(o).__name__} in JSON")
+
+
+# --- PLY (binary or ASCII), read without trusting its header ---------------------------------------------------
+
+PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+             "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+             "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float",
+              "f8": "double"}
+PLY_FIX = "Export the model again"
+
+
+def ply_type_name(dtype) -> str:
+    """The PLY name of a property's numpy type ('<f4' -> 'float')."""
+    import numpy as np
+
+    return _PLY_NAMES.get(np.dtype(dtype).str[1:], str(dtype))
+
+
+def _ply_header(path: Path, data: bytes, fix: str, error) -> tuple[str, list[str], list[tuple[str, int, list]], int]:
+    """(format, comments, elements as (name, count, [(property, numpy type or None for lists)]), body offset).
+    Every field is checked here, before anything is sized by the counts the header claims."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise error(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
+    newline = data.find(b"\n", end)
+    body_start = len(data) if newline < 0 else newline + 1
+    try:
+        text = data[:end].decode("utf-8")
+    except UnicodeDecodeError:
+        text = None
+    if text is None or "\x00" in text:
+        raise error(f"{path}: the PLY header holds binary data, not text; the file is damaged or not a PLY. {fix}")
+    lines = text.splitlines()
+    if lines[0].strip() != "ply":
+        raise error(f"{path} is not a PLY file (its first line is not 'ply')")
+
+    def malformed(number: int, expected: str):
+        return error(f"{path}: malformed PLY header line {number + 1} {lines[number].strip()[:80]!r}; expected "
+                     f"{expected}. The file is damaged or not a PLY. {fix}")
+
+    fmt, comments, elements = None, [], []
+    for i, line in enumerate(lines[1:], 1):
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "format":
+            if len(parts) < 2:
+                raise malformed(i, "'format <ascii|binary_little_endian|binary_big_endian> 1.0'")
+            fmt = parts[1]
+        elif parts[0] == "comment":
+            comments.append(line[len("comment "):])
+        elif parts[0] == "element":
+            if len(parts) != 3 or not re.fullmatch(r"[0-9]+", parts[2]):
+                raise malformed(i, "'element <name> <count>' with a whole count of 0 or more")
+            elements.append((parts[1], int(parts[2]), []))
+        elif parts[0] == "property":
+            if not elements:
+                raise error(f"{path}: property before any element in the PLY header")
+            if parts[1:2] == ["list"]:
+                if len(parts) != 5:
+                    raise malformed(i, "'property list <count type> <item type> <name>'")
+                elements[-1][2].append((parts[4], None))
+            elif len(parts) != 3:
+                raise malformed(i, "'property <type> <name>'")
+            elif parts[1] not in PLY_TYPES:
+                raise error(f"{path}: unknown PLY property type {parts[1]!r}")
+            else:
+                elements[-1][2].append((parts[2], PLY_TYPES[parts[1]]))
+    if fmt is None:
+        raise error(f"{path}: the PLY header has no 'format' line; the file is damaged. {fix}")
+    return fmt, comments, elements, body_start
+
+
+def _ascii_vertices(path: Path, body: bytes, count: int, props: list[tuple[str, str]], only: bool, fix: str,
+                    error):
+    """The first `count` rows of an ASCII body as floats [count, len(props)]; every row must hold a number for each
+    property (extra values on a row are ignored). `only`: vertex is the file's one element, so no row may follow."""
+    import numpy as np
+
+    try:
+        text = body.decode("ascii")
+    except UnicodeDecodeError:
+        raise error(f"{path}: an ASCII PLY body holds non-ASCII bytes; the file is damaged. {fix}") from None
+    values = np.empty((count, len(props)), dtype=np.float64)
+    rows = (r for r in text.splitlines() if r.strip())
+    for i in range(count):
+        row = next(rows, None)
+        if row is None:
+            raise error(f"{path} is truncated: the header promises {count} vertices but the body holds only {i} "
+                        f"row(s). {fix}")
+        words = row.split()
+        try:
+            if len(words) < len(props):
+                raise ValueError
+            values[i] = [float(w) for w in words[:len(props)]]
+        except ValueError:
+            raise error(f"{path}: vertex row {i + 1} {row.strip()[:80]!r} does not hold {len(props)} numbers "
+                        f"({', '.join(k for k, _ in props[:6])}{' ...' if len(props) > 6 else ''}); "
+                        f"the file is damaged. {fix}") from None
+    extra = sum(1 for _ in rows) if only else 0
+    if extra:
+        raise error(f"{path}: the header promises {count} vertices but {count + extra} rows follow; the count is wrong "
+                    f"or the file is damaged. {fix}")
+    return values
+
+
+def read_ply_vertices(path, *, fix: str = PLY_FIX, error=SplatzooError):
+    """(structured numpy array of the first element's properties, header comments) of a binary or ASCII PLY whose
+    first element is `vertex`. The header's counts are checked against the file's size before anything is allocated
+    (a few crafted bytes cannot ask for gigabytes), and the body must be exactly what the header declares: bytes or
+    rows beyond it mean a wrong count. Every problem is an `error` naming the file and ending in `fix`."""
+    import numpy as np
+
+    path = Path(path)
+    try:
+        found = path.is_file()
+        data = path.read_bytes() if found else b""
+    except OSError as e:  # a name longer than the file system allows, no permission, ...
+        raise error(f"PLY file {str(path)[:200]} cannot be read ({e.strerror or e})") from None
+    if not found:
+        hint = "; pass the file written by `splatzoo export`" if fix == PLY_FIX else ""
+        raise error(f"no PLY file at {path}{hint}")
+    fmt, comments, elements, body_start = _ply_header(path, data, fix, error)
+    if not elements or elements[0][0] != "vertex":
+        raise error(f"{path}: the first PLY element must be 'vertex' (one per point)")
+    _, count, props = elements[0]
+    if any(t is None for _, t in props):
+        raise error(f"{path}: list properties in the vertex element are not supported")
+    if not props:
+        raise error(f"{path}: the vertex element has no properties. {fix}")
+    names = [k for k, _ in props]
+    if len(set(names)) != len(names):
+        twice = sorted({k for k in names if names.count(k) > 1})
+        raise error(f"{path}: the vertex property {', '.join(twice)} is declared twice; the file is damaged")
+    body = len(data) - body_start
+    if fmt == "ascii":
+        most = (body + 1) // (2 * len(props))  # a value takes a digit and a separator (the file's last may lack it)
+        if count > most:
+            raise error(f"{path} is truncated or its header is wrong: it promises {count} vertices of {len(props)} "
+                        f"values but {body} bytes follow the header (room for at most {most}). {fix}")
+        values = _ascii_vertices(path, data[body_start:], count, props, len(elements) == 1, fix, error)
+        arr = np.empty(count, dtype=[(k, t) for k, t in props])
+        for i, (k, t) in enumerate(props):
+            column = values[:, i]
+            if np.dtype(t).kind != "f":
+                if not np.isfinite(column).all():
+                    raise error(f"{path}: the integer property {k} holds NaN or inf; the file is damaged. {fix}")
+                info = np.iinfo(t)
+                if count and (not np.array_equal(column, np.round(column)) or column.min() < info.min
+                              or column.max() > info.max):
+                    raise error(f"{path}: the {ply_type_name(t)} property {k} holds values that are not whole "
+                                f"numbers in {info.min}..{info.max}; the file is damaged. {fix}")
+            arr[k] = column
+        return arr, comments
+    if fmt not in ("binary_little_endian", "binary_big_endian"):
+        raise error(f"{path}: unsupported PLY format {fmt!r} (ascii, binary_little_endian or binary_big_endian)")
+    endian = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(k, endian + t) for k, t in props])
+    vertex_bytes = dtype.itemsize * count
+    if body < vertex_bytes:
+        raise error(f"{path} is truncated: the header promises {count} vertices of {dtype.itemsize} bytes but the "
+                    f"file holds {body} bytes after it. {fix}")
+    if all(t is not None for _, _, element_props in elements for _, t in element_props):
+        # every element has a fixed size: the body is exactly their sum (with list properties, as in a mesh's faces,
+        # only a full read could tell, so then the vertices alone must be there)
+        others = [(name, n, sum(np.dtype(t).itemsize for _, t in ps)) for name, n, ps in elements[1:]]
+        total = vertex_bytes + sum(n * size for _, n, size in others)
+        if body != total:
+            more = "".join(f" and {n} {name} of {size} bytes" for name, n, size in others)
+            raise error(f"{path}: the header promises {count} vertices of {dtype.itemsize} bytes{more} = {total} bytes "
+                        f"but {body} bytes follow; the count is wrong or the file is damaged. {fix}")
+    return np.frombuffer(data, dtype=dtype, count=count, offset=body_start), comments

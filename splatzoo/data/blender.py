@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from ..errors import DataError
+from ..io import ply_type_name, read_ply_vertices
 from ..types import Camera
 from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_has_alpha, image_size, mesh_path_of,
                     scale_camera, split_views, target_scale)
@@ -198,47 +199,37 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
 
 
 def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """x, y, z (and red, green, blue if present) of a PLY vertex list, ascii or binary, no open3d needed."""
-    types = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-             "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-             "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
-    try:
-        data = path.read_bytes()
-        end = data.index(b"end_header") + len(b"end_header")
-        end = data.index(b"\n", end) + 1
-        header = data[:end].decode("ascii").splitlines()
-        fmt = next(ln.split()[1] for ln in header if ln.startswith("format"))
-        props, count, in_vertex = [], 0, False
-        for ln in header:
-            parts = ln.split()
-            if parts[:1] == ["element"]:
-                in_vertex = parts[1] == "vertex"
-                if in_vertex:
-                    count = int(parts[2])
-                elif count and not props:
-                    raise ValueError("vertex element must come first")
-            elif parts[:1] == ["property"] and in_vertex:
-                if parts[1] == "list":
-                    raise ValueError("list properties on vertices are not supported")
-                props.append((parts[2], types[parts[1]]))
-        if fmt == "ascii":
-            rows = data[end:].decode("ascii").split("\n")[:count]
-            arr = np.array([[float(x) for x in r.split()[:len(props)]] for r in rows])
-            table = {n: arr[:, i] for i, (n, _) in enumerate(props)}
-        else:
-            order = "<" if fmt == "binary_little_endian" else ">"
-            dt = np.dtype([(n, order + t) for n, t in props])
-            rec = np.frombuffer(data, dtype=dt, count=count, offset=end)
-            table = {n: rec[n] for n, _ in props}
-        xyz = np.stack([table["x"], table["y"], table["z"]], 1).astype(np.float32)
-        rgb = None
-        if all(k in table for k in ("red", "green", "blue")):
-            rgb = np.stack([table["red"], table["green"], table["blue"]], 1).astype(np.float32)
-            rgb = rgb / 255.0 if rgb.max() > 1.0 else rgb
-        return xyz, rgb
-    except (OSError, ValueError, KeyError, StopIteration, UnicodeDecodeError, IndexError) as e:
-        raise DataError(f"cannot read points from {path} ({e}); it must be a PLY point cloud with x, y, z "
-                        "vertex properties. Fix or delete it (random points are used without it)") from None
+    """x, y, z (float32 [N,3]) and, if present, red, green, blue (float32 [N,3] in [0,1]) of a PLY vertex list, ASCII or
+    binary, no open3d needed. Positions must be float or double properties; colours may be integers (uchar: 0..255)
+    or floats (0..1, or 0..255). The file is read by splatzoo.io.read_ply_vertices: its counts must match its body."""
+    fix = "Fix or delete it (random points are used without it)"
+    arr, _ = read_ply_vertices(path, fix=fix, error=DataError)
+    names = arr.dtype.names
+    missing = [k for k in ("x", "y", "z") if k not in names]
+    if missing:
+        raise DataError(f"cannot read points from {path}: it has no {', '.join(missing)} vertex properties; a point "
+                        f"cloud is a PLY with x, y, z vertex properties. {fix}")
+    for k in ("x", "y", "z"):
+        if arr.dtype[k].kind != "f":
+            raise DataError(f"{path}: {k} is stored as {ply_type_name(arr.dtype[k])}; point positions are float or "
+                            f"double properties. {fix}")
+    xyz = np.stack([arr["x"], arr["y"], arr["z"]], 1).astype(np.float64)
+    if not np.isfinite(xyz).all() or np.abs(xyz).max(initial=0) > np.finfo(np.float32).max:
+        bad = int(np.count_nonzero(~np.isfinite(xyz).all(1) | (np.abs(xyz) > np.finfo(np.float32).max).any(1)))
+        raise DataError(f"{path}: {bad} point(s) have a non-finite or out-of-range position (NaN, infinity or beyond "
+                        f"float32); the file is damaged. {fix}")
+    rgb = None
+    if all(k in names for k in ("red", "green", "blue")):
+        rgb = np.stack([arr["red"], arr["green"], arr["blue"]], 1).astype(np.float64)
+        kinds = {arr.dtype[k].kind for k in ("red", "green", "blue")}
+        if kinds <= {"u", "i"}:  # integer colours span their type: uchar 0..255, ushort 0..65535
+            rgb = rgb / max(np.iinfo(arr.dtype[k]).max for k in ("red", "green", "blue"))
+        elif rgb.size and np.isfinite(rgb).all() and rgb.max() > 1.0:
+            rgb = rgb / 255.0
+        if not np.isfinite(rgb).all() or (rgb.size and (rgb.min() < 0 or rgb.max() > 1)):
+            raise DataError(f"{path}: its colours (red, green, blue) are not all in 0..255 (integers) or 0..1 "
+                            f"(floats); the file is damaged. {fix}")
+    return xyz.astype(np.float32), None if rgb is None else rgb.astype(np.float32)
 
 
 def load_blender(root, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
