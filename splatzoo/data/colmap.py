@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import shutil
+import struct
 import tempfile
 from collections import defaultdict
 from pathlib import Path
@@ -57,11 +58,142 @@ def read_model(sparse: Path):
     if missing:
         raise DataError(f"COLMAP model {sparse} lacks {', '.join(m + '.bin/.txt' for m in missing)}; "
                         "re-export the model from COLMAP (File > Export model) or re-run `splatzoo sfm`")
+    if all((sparse / f"{n}.bin").is_file() for n in MODEL_FILES):  # what pycolmap reads then
+        for name in BINARY_LAYOUTS:
+            if (sparse / f"{name}.bin").is_file():
+                check_binary_file(sparse / f"{name}.bin")
     try:
         return pycolmap.Reconstruction(sparse)
     except Exception as e:  # pycolmap raises plain RuntimeError/ValueError on truncated files
         raise DataError(f"cannot read COLMAP model {sparse}: {e}. The files may be truncated or corrupt; "
                         "re-export the model or re-run `splatzoo sfm`") from None
+
+
+# --- the binary model's layout, walked before pycolmap reads it ----------------------------------------------------
+# pycolmap trusts the counts in a binary model: a count damaged into billions makes it reserve gigabytes or loop on a
+# stream that has ended (minutes, then std::bad_alloc), and a cut-off image name makes it read forever. So each file is
+# walked here first, with every count checked against the bytes that are left: layouts as COLMAP writes them
+# (src/colmap/scene/reconstruction_io_binary.cc).
+
+_POSE = 7 * 8  # quaternion (w, x, y, z) and translation, doubles
+
+
+def _camera_param_counts() -> dict[int, int]:
+    pycolmap = import_pycolmap()
+    counts = {}
+    for name, model_id in pycolmap.CameraModelId.__members__.items():
+        if name != "INVALID":
+            counts[int(model_id.value)] = len(pycolmap.Camera.create_from_model_name(1, name, 1.0, 1, 1).params)
+    return counts
+
+
+class _Reader:
+    """Little-endian values from `data`, each read checked against the end: a DataError names the file."""
+
+    def __init__(self, path: Path, data: bytes):
+        self.path, self.data, self.at = path, data, 0
+
+    def damaged(self, problem: str) -> DataError:
+        return DataError(f"cannot read COLMAP model {self.path.parent}: {self.path.name} is damaged or truncated "
+                         f"({problem}); re-export the model from COLMAP (File > Export model) or re-run `splatzoo sfm`")
+
+    def skip(self, size: int, what: str) -> None:
+        if size > len(self.data) - self.at:
+            raise self.damaged(f"{what} needs {size} bytes at byte {self.at} but only {len(self.data) - self.at} are "
+                               "left")
+        self.at += size
+
+    def read(self, fmt: str, what: str):
+        size = struct.calcsize("<" + fmt)
+        start = self.at
+        self.skip(size, what)
+        values = struct.unpack_from("<" + fmt, self.data, start)
+        return values[0] if len(values) == 1 else values
+
+    def count(self, fmt: str, what: str, item_size: int) -> int:
+        """A count of items of at least `item_size` bytes each, which must fit in what is left of the file."""
+        n = self.read(fmt, f"the number of {what}")
+        if n * item_size > len(self.data) - self.at:
+            raise self.damaged(f"it declares {n} {what} of at least {item_size} bytes but only "
+                               f"{len(self.data) - self.at} bytes follow")
+        return n
+
+    def name(self, what: str) -> None:
+        end = self.data.find(b"\0", self.at)
+        if end < 0:
+            raise self.damaged(f"{what} runs to the end of the file without its terminating zero byte")
+        try:
+            self.data[self.at:end].decode("utf-8")
+        except UnicodeDecodeError:
+            raise self.damaged(f"{what} {self.data[self.at:end][:60]!r} is not UTF-8 text") from None
+        self.at = end + 1
+
+    def done(self) -> None:
+        if self.at != len(self.data):
+            raise self.damaged(f"{len(self.data) - self.at} bytes follow the last entry it declares; a count is wrong")
+
+
+def _walk_cameras(r: _Reader) -> None:
+    params = _camera_param_counts()
+    for i in range(r.count("Q", "cameras", 24)):
+        _, model_id = r.read("Ii", f"camera {i + 1}'s id and model")
+        if model_id not in params:
+            raise r.damaged(f"camera {i + 1} has camera model id {model_id}, which COLMAP does not know")
+        r.skip(16 + 8 * params[model_id], f"camera {i + 1}'s size and parameters")
+
+
+def _walk_images(r: _Reader) -> None:
+    for i in range(r.count("Q", "images", 4 + _POSE + 4 + 1 + 8)):
+        r.skip(4 + _POSE + 4, f"image {i + 1}'s id, pose and camera id")
+        r.name(f"image {i + 1}'s name")
+        r.skip(r.count("Q", f"2D points of image {i + 1}", 24) * 24, f"image {i + 1}'s 2D points")
+
+
+def _walk_points(r: _Reader) -> None:
+    # a tight loop: a model can hold millions of points
+    n, data, at, end = r.count("Q", "3D points", 8 + 24 + 3 + 8 + 8), r.data, r.at, len(r.data)
+    track_length = struct.Struct("<Q").unpack_from
+    for i in range(n):
+        at += 8 + 24 + 3 + 8  # id, position, colour, error
+        if at + 8 > end:
+            raise r.damaged(f"3D point {i + 1} of {n} runs past the end of the file")
+        at += 8 + 8 * track_length(data, at)[0]
+        if at > end:
+            raise r.damaged(f"the track of 3D point {i + 1} runs past the end of the file")
+    r.at = at
+
+
+def _walk_rigs(r: _Reader) -> None:
+    for i in range(r.count("Q", "rigs", 8)):
+        r.skip(4, f"rig {i + 1}'s id")
+        sensors = r.count("I", f"sensors of rig {i + 1}", 8)
+        if sensors:
+            r.skip(8, f"rig {i + 1}'s reference sensor")
+        for j in range(max(sensors - 1, 0)):
+            r.skip(8, f"sensor {j + 2} of rig {i + 1}")
+            if r.read("B", f"whether sensor {j + 2} of rig {i + 1} has a pose"):
+                r.skip(_POSE, f"the pose of sensor {j + 2} of rig {i + 1}")
+
+
+def _walk_frames(r: _Reader) -> None:
+    for i in range(r.count("Q", "frames", 8 + _POSE + 4)):
+        r.skip(8 + _POSE, f"frame {i + 1}'s ids and pose")
+        r.skip(r.count("I", f"data ids of frame {i + 1}", 16) * 16, f"frame {i + 1}'s data ids")
+
+
+BINARY_LAYOUTS = {"rigs": _walk_rigs, "cameras": _walk_cameras, "frames": _walk_frames, "images": _walk_images,
+                  "points3D": _walk_points}
+
+
+def check_binary_file(path: Path) -> None:
+    """A DataError naming `path` when the binary model file's counts do not match its bytes (see above)."""
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise DataError(f"cannot read COLMAP model {path.parent}: {path.name} ({e.strerror or e})") from None
+    r = _Reader(path, data)
+    BINARY_LAYOUTS[path.stem](r)
+    r.done()
 
 
 def _model_stamp(sparse: Path, images_dir: Path, masks_dir: Path | None) -> str:
@@ -280,8 +412,16 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
             sx, sy = cam_scale[im.camera_id]
             K[0] *= sx
             K[1] *= sy
+        pose = im.cam_from_world()
         w2c = np.eye(4)
-        w2c[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+        w2c[:3, :4] = np.asarray(pose.matrix(), dtype=np.float64)
+        # COLMAP stores the quaternion as written; a zero one becomes the identity rotation without a word
+        quat = np.asarray(pose.rotation.quat, dtype=np.float64)
+        length = float(np.linalg.norm(quat))
+        if not (np.isfinite(w2c).all() and abs(length - 1) <= 1e-3):
+            raise DataError(f"COLMAP model {sparse}: image {im.name} has a broken pose (its rotation quaternion "
+                            f"{quat[[3, 0, 1, 2]].tolist()} (w, x, y, z) has length {length:.3g}, not 1, or its "
+                            "translation is not finite); re-export the model from COLMAP or re-run `splatzoo sfm`")
         cam = Camera(torch.from_numpy(w2c), torch.from_numpy(K), w, h, im.name)
         cam = scale_camera(cam, target_scale(w, h, resolution, max_width))
         path = images_dir / im.name
@@ -302,7 +442,13 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
                           background=tuple(background)))
 
     ids = sorted(model.points3D.keys())
-    xyz = np.array([model.points3D[i].xyz for i in ids], dtype=np.float32).reshape(-1, 3)
+    xyz64 = np.array([model.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    bad = ~(np.isfinite(xyz64) & (np.abs(xyz64) <= np.finfo(np.float32).max)).all(1)
+    if bad.any():
+        raise DataError(f"COLMAP model {sparse}: {int(bad.sum())} 3D point(s) have a non-finite or out-of-range "
+                        f"position (e.g. point {ids[int(np.flatnonzero(bad)[0])]}); the points file is damaged. "
+                        "Re-export the model from COLMAP or re-run `splatzoo sfm`")
+    xyz = xyz64.astype(np.float32)
     rgb = np.array([model.points3D[i].color for i in ids], dtype=np.float32).reshape(-1, 3) / 255.0
     points, colors = torch.from_numpy(xyz), torch.from_numpy(rgb)
     train, test = split_views(views, test_every, root)
