@@ -44,7 +44,7 @@ def parse_background(value) -> str | tuple[float, float, float]:
     else:
         try:
             numbers = [float(c) for c in value]
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: an integer too large for a float
             numbers = []
     if len(numbers) != 3 or not all(np.isfinite(numbers)):
         raise DataError(f"background {value!r} is not understood; use {CHOICES}")

@@ -61,6 +61,11 @@ def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def _is_finite(value) -> bool:
+    """A number that a float64 holds and that is not NaN or infinity (JSON integers can be any size)."""
+    return abs(value) <= 1.7976931348623157e308 and math.isfinite(value)
+
+
 def _option(frame: dict, meta: dict, key: str, where: str, i: int, *, positive: bool = False,
             below: float | None = None, hint: str = "") -> float | None:
     """A per-frame value (or, failing that, the file's), checked: a finite number, > 0 if `positive`, < `below`.
@@ -73,8 +78,8 @@ def _option(frame: dict, meta: dict, key: str, where: str, i: int, *, positive: 
         return None
     if not _is_number(value):
         raise DataError(f"{at}: {key} must be a number, not {value!r:.60}{hint}")
-    if not math.isfinite(value):
-        raise DataError(f"{at}: {key} is {value}, not a finite number{hint}")
+    if not _is_finite(value):
+        raise DataError(f"{at}: {key} is {str(value)[:40]}, not a finite number{hint}")
     if positive and value <= 0:
         raise DataError(f"{at}: {key} is {value}; it must be greater than 0{hint}")
     if below is not None and value >= below:
@@ -101,9 +106,9 @@ def _pose(frame: dict, where: str, i: int) -> np.ndarray:
         bad = next((v for v in row if not _is_number(v)), "ok")
         if bad != "ok":
             raise DataError(f"{at}: row {r} holds {bad!r:.40}, not a number")
+    if not all(_is_finite(v) for row in m for v in row):
+        raise DataError(f"{at} holds NaN or infinity (or a number too large for a float); re-export the camera poses")
     c2w = np.asarray(m, dtype=np.float64)
-    if not np.isfinite(c2w).all():
-        raise DataError(f"{at} holds NaN or infinity; re-export the camera poses")
     if c2w.shape == (3, 4):
         c2w = np.vstack([c2w, [0, 0, 0, 1]])
     if not np.allclose(c2w[3], [0, 0, 0, 1], atol=1e-6):

@@ -42,6 +42,13 @@ register_format(blender.FORMAT)
 def detect_format(path) -> str:
     """The name of the format of dataset folder `path`; a DataError says what a dataset folder must contain."""
     path = Path(path)
+    try:
+        path.stat()
+    except (FileNotFoundError, NotADirectoryError):
+        pass
+    except OSError as e:  # a name longer than the file system allows, a folder we may not read, ...
+        raise DataError(f"dataset folder {str(path)[:200]} cannot be looked up ({e.strerror or e}); check the "
+                        "path") from None
     if not path.exists():
         raise DataError(f"dataset folder {path} does not exist; check the path (create one with "
                         "`splatzoo sfm IMAGES --out DATA` or `splatzoo synth NAME --out DATA`)")
@@ -76,6 +83,12 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     """
     from .background import choose_background, parse_background
 
+    from .scene import scene_option_problem
+
+    for key, value in (("resolution", resolution), ("max_width", max_width), ("test_every", test_every)):
+        problem = scene_option_problem(key, value)  # before a folder is read: the same words for every format
+        if problem:
+            raise DataError(problem)
     path = Path(path).expanduser()
     option = parse_background(background)
     if format is None:

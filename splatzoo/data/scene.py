@@ -395,11 +395,36 @@ def camera_extent(cameras: list[Camera], points: torch.Tensor | None = None) -> 
     return 1.1 * (radius if radius > 1e-9 else 1.0)
 
 
+def scene_option_problem(key: str, value) -> str | None:
+    """Why `value` cannot be load_scene's option `key` (resolution, max_width or test_every), or None."""
+    import math
+
+    whole = isinstance(value, int) and not isinstance(value, bool)
+    if key == "resolution":
+        if value is None or (whole and value in (1, 2, 4, 8)):
+            return None
+        return (f"resolution={value!r:.60} is not supported: use 1, 2, 4 or 8 (a downscale factor), or max_width for "
+                "any other size")
+    if key == "max_width":
+        try:
+            ok = value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                   and math.isfinite(float(value)) and value >= 1)
+        except OverflowError:  # an integer too large for a float
+            ok = False
+        return None if ok else f"max_width={value!r:.60} must be a positive number of pixels"
+    if key == "test_every":
+        if whole and (value == 0 or value >= 2):
+            return None
+        return (f"test_every={value!r:.60} is not allowed: use 0 (no test split) or a whole number >= 2 (every n-th "
+                "image, by sorted name, is a test view)")
+    return None
+
+
 def split_views(views: list[View], test_every: int, where: Path) -> tuple[list[View], list[View]]:
     """Sort by name; index % test_every == 0 is a test view (0 disables the split)."""
-    if test_every < 0 or test_every == 1:
-        raise DataError(f"test_every={test_every} is not allowed: use 0 (no test split) or >= 2 "
-                        "(every n-th image, by sorted name, is a test view)")
+    problem = scene_option_problem("test_every", test_every)
+    if problem:
+        raise DataError(problem)
     views = sorted(views, key=lambda v: v.name)
     if test_every == 0:
         return views, []
@@ -414,15 +439,14 @@ def split_views(views: list[View], test_every: int, where: Path) -> tuple[list[V
 def target_scale(width: int, height: int, resolution: int | None, max_width: int | None) -> float:
     """The factor applied to a camera of this size: 1/resolution, then capped so width <= max_width."""
     factor = 1.0
+    for key, value in (("resolution", resolution), ("max_width", max_width)):
+        problem = scene_option_problem(key, value)
+        if problem:
+            raise DataError(problem)
     if resolution is not None:
-        if resolution not in (1, 2, 4, 8):
-            raise DataError(f"resolution={resolution} is not supported: use 1, 2, 4 or 8 (a downscale factor), "
-                            "or max_width for any other size")
         factor = 1.0 / resolution
     if max_width is not None:
-        if max_width < 1:
-            raise DataError(f"max_width={max_width} must be a positive number of pixels")
-        factor = min(factor, max_width / width)
+        factor = min(factor, float(max_width) / width)
     return factor
 
 
