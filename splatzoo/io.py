@@ -63,6 +63,8 @@ def read_json(path, what: str, fix: str) -> object:
         raise SplatzooError(f"{what} {path} does not exist; {fix}") from None
     except (OSError, UnicodeDecodeError, ValueError) as e:
         raise SplatzooError(f"{what} {path} is damaged ({e}); {fix}") from None
+    except RecursionError:  # a nesting bomb ([[[[...): no file we write nests deeper than a few levels
+        raise SplatzooError(f"{what} {path} is damaged (its JSON nests too deeply); {fix}") from None
 
 
 def read_torch(path, what: str, fix: str) -> object:
@@ -71,9 +73,14 @@ def read_torch(path, what: str, fix: str) -> object:
     import torch
 
     path = Path(path)
-    if not path.is_file():
+    try:
+        found = path.is_file()
+        empty = found and path.stat().st_size == 0
+    except OSError as e:  # a name longer than the file system allows, a folder we may not read, ...
+        raise SplatzooError(f"{what} {str(path)[:200]} cannot be looked up ({e.strerror or e}); {fix}") from None
+    if not found:
         raise SplatzooError(f"{what} {path} does not exist; {fix}")
-    if path.stat().st_size == 0:
+    if empty:
         raise SplatzooError(f"{what} {path} is empty (0 bytes); {fix}")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)

@@ -96,6 +96,52 @@ def scene_fingerprint(scene) -> str:
     return h.hexdigest()[:32]
 
 
+def _scene_options_problem(options: dict) -> str | None:
+    """What is wrong with the scene options of a run record (a hand edit, a damaged file), or None."""
+    from .data.background import parse_background
+    from .data.scene import scene_option_problem
+
+    unknown = sorted(set(options) - set(SCENE_OPTION_DEFAULTS))
+    if unknown:
+        return (f"unknown scene option(s) {', '.join(map(repr, unknown))[:200]} (known: "
+                f"{', '.join(SCENE_OPTION_DEFAULTS)})")
+    for key, value in options.items():
+        if key == "background":
+            try:
+                parse_background(value)
+            except SplatzooError as e:
+                return f"scene option background: {e}"
+        elif value is not None:
+            problem = scene_option_problem(key, value)
+            if problem:
+                return f"scene option {problem}"
+    return None
+
+
+def _train_config_problem(stored: dict) -> str | None:
+    """A training config value of the wrong type (a hand edit): TrainConfig does not check types itself."""
+    import math
+    import types
+    import typing
+
+    hints = typing.get_type_hints(TrainConfig)
+    for key, value in stored.items():
+        want = hints.get(key)
+        optional = typing.get_origin(want) in (typing.Union, types.UnionType)  # int | None
+        if optional:
+            if value is None:
+                continue
+            want = next(t for t in typing.get_args(want) if t is not type(None))
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        ok = {bool: isinstance(value, bool), str: isinstance(value, str),
+              int: number and isinstance(value, int) and abs(value) < 2**63,
+              float: number and (not isinstance(value, int) or abs(value) < 2**63)
+              and math.isfinite(float(value))}.get(want, True)
+        if not ok:
+            return f"{key} must be {getattr(want, '__name__', want)}{' or null' if optional else ''}, got {value!r:.60}"
+    return None
+
+
 def make_record(scene, scene_options: dict | None, model: str, model_config, cfg: TrainConfig) -> dict:
     """config.json of a new run."""
     from . import __version__
@@ -159,6 +205,13 @@ class Run:
 
     @property
     def status(self) -> str:
+        try:
+            return self._status()
+        except OSError as e:  # a name longer than the file system allows, a folder we may not read, ...
+            raise SplatzooError(f"run folder {str(self.path)[:200]} cannot be looked up ({e.strerror or e}); "
+                                "choose another folder") from None
+
+    def _status(self) -> str:
         if not self.path.exists():
             return "new"
         if not self.path.is_dir():
@@ -188,14 +241,21 @@ class Run:
                                    for t in types)
                 raise SplatzooError(f"run configuration {self.config_path} is malformed: {key!r} must be {want}, "
                                     f"not {type(rec[key]).__name__}; {fix}")
+        problem = _scene_options_problem(rec.get("scene_options") or {})
+        if problem:
+            raise SplatzooError(f"run configuration {self.config_path} is malformed: {problem}; {fix}")
         return rec
 
     def train_config(self, record: dict | None = None) -> TrainConfig:
         rec = record or self.record()
         known = {f.name for f in dataclasses.fields(TrainConfig)}
+        stored = {k: v for k, v in {**TrainConfig.stored_defaults, **rec["train"]}.items() if k in known}
+        problem = _train_config_problem(stored)
+        if problem:
+            raise SplatzooError(f"run configuration {self.config_path} has an invalid training config ({problem}); "
+                                "the run folder is damaged: train again into a new --out (or restore config.json)")
         try:
-            stored = {**TrainConfig.stored_defaults, **rec["train"]}
-            return TrainConfig(**{k: v for k, v in stored.items() if k in known}).validate()
+            return TrainConfig(**stored).validate()
         except TypeError as e:
             raise SplatzooError(f"run configuration {self.config_path} has an invalid training config ({e})") from None
 
@@ -229,7 +289,12 @@ class Run:
         data = rec.get("data")
         if not data:
             raise SplatzooError(f"{self.path} was trained on an in-memory scene; it has no dataset to reload")
-        if not Path(data).exists():
+        try:
+            found = Path(data).exists()
+        except OSError as e:  # a name longer than the file system allows (a damaged record), ...
+            raise SplatzooError(f"the dataset of {self.path} ({data[:200]}) cannot be looked up ({e.strerror or e}); "
+                                f"the run configuration {self.config_path} is damaged") from None
+        if not found:
             raise SplatzooError(f"the dataset of {self.path} ({data}) no longer exists; restore it or move it back")
         return load_scene(data, **_load_options(rec))
 
@@ -552,6 +617,79 @@ def _load_options(record: dict) -> dict:
     return {k: v for k, v in opts.items() if v is not None}
 
 
+def _check_adam_groups(optimizer) -> None:
+    """The hyperparameters of a checkpoint's Adam groups, which torch loads unchecked and uses only at the next step:
+    lr, betas and eps finite numbers in their ranges, weight_decay and the flags as the trainer leaves them (Adam's
+    defaults). A ValueError says what is wrong (the caller names the checkpoint)."""
+    import math
+
+    groups = optimizer.get("param_groups") if isinstance(optimizer, dict) else None
+    if not isinstance(groups, list) or not all(isinstance(g, dict) for g in groups):
+        raise ValueError("the optimizer state has no list of parameter groups")
+    defaults = torch.optim.Adam([torch.zeros(1)]).defaults
+
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) <= 1e308 and math.isfinite(v)
+
+    for i, group in enumerate(groups):
+        name = group.get("name", i)
+        for key in ("lr", "betas", "eps", "weight_decay"):
+            if key not in group:
+                raise ValueError(f"Adam's {key} is missing from optimizer group {name!r}")
+        betas = group["betas"]
+        problems = {"lr": number(group["lr"]) and group["lr"] >= 0,
+                    "eps": number(group["eps"]) and 0 < group["eps"] <= 1,
+                    "weight_decay": group["weight_decay"] == defaults["weight_decay"],  # the trainer uses none
+                    "betas": isinstance(betas, (tuple, list)) and len(betas) == 2
+                    and all(number(b) and 0 <= b < 1 for b in betas)}
+        for key, default in defaults.items():
+            # flags: the trainer leaves them at Adam's defaults (maximize would climb the loss, capturable needs a
+            # GPU); older files may lack newer ones, which torch then fills in
+            if key not in problems and key in group:
+                problems[key] = group[key] is default or (default is None and group[key] is False)
+        bad = next((k for k, ok in problems.items() if not ok), None)
+        if bad is not None:
+            raise ValueError(f"Adam's {bad} of optimizer group {name!r} is {group[bad]!r:.60}")
+    moments = optimizer.get("state")
+    if not isinstance(moments, dict) or not all(isinstance(m, dict) for m in moments.values()):
+        raise ValueError("the optimizer state has no dict of per-parameter Adam states")
+    for key, m in moments.items():
+        # torch casts the moments to their parameter's dtype when it loads them, but not the step count
+        step = m.get("step", 0)
+        ok = (number(step) if not isinstance(step, torch.Tensor) else
+              step.numel() == 1 and step.layout == torch.strided and step.device.type == "cpu"
+              and (step.is_floating_point() or step.dtype in (torch.int32, torch.int64)))
+        if not ok:
+            raise ValueError(f"Adam's step of parameter {key!r:.20} is {step!r:.60}, not a count")
+
+
+def _check_learning_rates(trainer, scene) -> None:
+    """The resumed optimizer's groups are the model's own (by name), with the learning rates the trainer gives them:
+    only the position group's follows a schedule (set every step), the others keep theirs for the whole run, so a
+    checkpoint that says otherwise was edited or damaged (a ValueError says how)."""
+    import math
+
+    own = {g["name"]: g.get("lr", 0.0) * trainer.lr_scale for g in trainer.net.optim_groups(scene.extent)}
+    for group in trainer.optimizer.param_groups:
+        name = group.get("name")
+        if name not in own:
+            raise ValueError(f"optimizer group {name!r:.60} is not one of the model's ({', '.join(own)})")
+        if name != "means" and not math.isclose(group["lr"], own[name], rel_tol=1e-6):
+            raise ValueError(f"Adam's lr of optimizer group {name!r} is {group['lr']!r:.60}, but the run gives it "
+                             f"{own[name]:.6g}")
+
+
+def _check_tensors(entries, what: str) -> None:
+    """`entries` is a dict of dense tensors with data (a ValueError says what is not)."""
+    if not isinstance(entries, dict):
+        raise ValueError(f"{what} are a {type(entries).__name__}, not a dict of tensors")
+    for key, value in entries.items():
+        if not isinstance(value, torch.Tensor) or value.layout != torch.strided or value.device.type != "cpu":
+            raise ValueError(f"{what}: {key!r:.60} is a {type(value).__name__}"
+                             f"{f' on {value.device.type}' if isinstance(value, torch.Tensor) else ''}, not a tensor "
+                             "with data")
+
+
 def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, state, *, progress: bool,
                 evaluate_at_end: bool, stop_after: int | None, distributed: bool = False, watch=None) -> TrainResult:
     """The loop around Trainer.step: logs, checkpoints (by iteration, by time, on SIGINT/SIGTERM), the final
@@ -568,8 +706,11 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
         trainer = Trainer.start(scene, model, model_config, cfg, backend, device, comm=comm)
     else:
         try:
+            _check_adam_groups(state["optimizer"])
+            _check_tensors(state["densify"], "the densification statistics")
             trainer = Trainer.resume(scene, state, cfg, backend, device, comm=comm)
-        except (KeyError, ValueError, TypeError, RuntimeError, IndexError) as e:
+            _check_learning_rates(trainer, scene)
+        except (KeyError, ValueError, TypeError, RuntimeError, IndexError, OverflowError) as e:  # Overflow: 10**400
             raise SplatzooError(f"checkpoint {run.checkpoint_path} does not hold a consistent training state ({e}); "
                                 f"delete {run.path} or pass --overwrite to train again") from None
     if writer:
@@ -581,6 +722,11 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
 
     def save():
         nonlocal last_save
+        diverged = [name for name, p in trainer.net.named_parameters() if not bool(torch.isfinite(p).all())]
+        if diverged:  # every rank holds the same parameters, so every rank stops here
+            raise SplatzooError(f"the run diverged: {', '.join(diverged)} became NaN or infinite by iteration "
+                                f"{trainer.iteration}; nothing was written, {run.checkpoint_path} keeps the last good "
+                                "state. Lower the learning rates or report the scene")
         state = trainer.state_dict()  # every rank: it sums the densification statistics
         if writer:
             torch_save(state, run.checkpoint_path)

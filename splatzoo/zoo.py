@@ -130,6 +130,8 @@ def _check_config(name: str, config_cls, config: dict, fail) -> None:
         allowed = _CONFIG_TYPES.get(hints.get(k))
         if allowed and (not isinstance(v, allowed) or (isinstance(v, bool) and bool not in allowed)):
             raise fail(f"config option {k} of model {name!r} must be {hints[k].__name__}, got {_brief(repr(v))}")
+        if hints.get(k) is float and isinstance(v, int) and abs(v) > 1e308:  # no float holds it
+            raise fail(f"config option {k} of model {name!r} is {_brief(repr(v), 60)}, too large for a float")
 
 
 def _brief(x, limit: int = 200) -> str:
@@ -234,7 +236,7 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
         _check_shapes(name, expected, state, variable, fail)
     try:
         model.load_checkpoint_state(state)
-    except (TypeError, KeyError, ValueError, RuntimeError, IndexError) as e:
+    except (TypeError, KeyError, ValueError, RuntimeError, IndexError, OverflowError) as e:  # Overflow: a count of 3e38
         raise fail(f"its state does not fit model {name!r} with config {_brief(config)} "
                    f"({type(e).__name__}: {_brief(e)})") from None
     _check_shapes(name, expected, {**model.state_dict(), **model.per_primitive()}, variable, fail)
