@@ -51,13 +51,32 @@ def _root(
     """splatzoo: surface splatting model zoo (2DGS, 3D Gabor splatting and plugins)."""
 
 
+def _path_arg(value):
+    """A path argument the file system can look up: a name longer than it allows (or a folder we may not read) is a
+    usage error that names it, not an OSError from deep inside the command."""
+    import errno
+
+    for path in value if isinstance(value, (list, tuple)) else [value]:
+        if path is None:
+            continue
+        try:
+            os.stat(path)
+        except OSError as e:
+            if e.errno not in (errno.ENOENT, errno.ENOTDIR):  # missing: the command says what it needs there
+                raise typer.BadParameter(f"{str(path)[:120]}{'...' if len(str(path)) > 120 else ''} cannot be "
+                                         f"looked up ({e.strerror or e})") from None
+    return value
+
+
 # --- data commands (splatzoo sfm, splatzoo synth) ---------------------------------------------------------
 # (data commands go here)
 @app.command("sfm")
 def sfm_command(
     images_dir: Path = typer.Argument(..., metavar="IMAGES", help="Folder of photos (png/jpg) of one static subject, "
-                                      "or a video of it (mp4, mov, avi, ...: sharp frames are taken from it)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Dataset folder to create (images/, sparse/0/)."),
+                                      "or a video of it (mp4, mov, avi, ...: sharp frames are taken from it).",
+                                      callback=_path_arg),
+    out: Path = typer.Option(..., "--out", "-o", help="Dataset folder to create (images/, sparse/0/).",
+                             callback=_path_arg),
     camera_model: str = typer.Option("SIMPLE_RADIAL", "--camera-model",
                                      help="COLMAP camera model to fit (case-insensitive): SIMPLE_RADIAL, SIMPLE_PINHOLE "
                                      "(no distortion), PINHOLE, OPENCV, OPENCV_FISHEYE, ...; non-pinhole models are "
@@ -106,7 +125,7 @@ def sfm_command(
 @app.command("synth")
 def synth_command(
     name: Optional[str] = typer.Argument(None, metavar="SCENE", help="Scene name (see --list)."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset folder to create."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset folder to create.", callback=_path_arg),
     views: int = typer.Option(48, help="Number of views."),
     width: int = typer.Option(256, help="Image width in pixels."),
     height: int = typer.Option(256, help="Image height in pixels."),
@@ -221,11 +240,13 @@ def _given(ctx: typer.Context) -> set[str]:
 def train_command(
     ctx: typer.Context,
     data: Optional[Path] = typer.Argument(None, metavar="DATA", help="COLMAP folder (images/ + sparse/0/) or Blender "
-                                          "folder (transforms_*.json); with --resume, the run's own dataset by default"),
+                                          "folder (transforms_*.json); with --resume, the run's own dataset by default",
+                                          callback=_path_arg),
     model: str = typer.Option("gabor", "--model", "-m", help="model name, with options either following it "
                               "(--n-waves 8) or inline as in compare (gabor:n_waves=8); see `splatzoo models -v`"),
     iterations: int = typer.Option(30000, "--iterations", "-i", help="training iterations; the schedule scales with it"),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="run directory (default runs/<model>)"),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="run directory (default runs/<model>)",
+                                       callback=_path_arg),
     backend: str = _BACKEND,
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,
@@ -339,7 +360,8 @@ def _fmt(value, spec: str) -> str:
 
 @app.command("eval")
 def eval_command(
-    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`"),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`",
+                               callback=_path_arg),
     backend: str = _BACKEND,
     lpips_net: str = typer.Option("vgg", "--lpips-net", help="vgg or alex"),
     lpips_convention: str = typer.Option("3dgs", "--lpips-convention",
@@ -347,7 +369,7 @@ def eval_command(
     scale: Optional[str] = typer.Option(None, "--scale", help="also render smaller, e.g. 0.5,0.25, and score "
                                         "against area-averaged images and the model's own full-size render"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="metrics file to write (default RUN/metrics.json); "
-                                       "elsewhere, the run is only read (read-only media)"),
+                                       "elsewhere, the run is only read (read-only media)", callback=_path_arg),
 ) -> None:
     """Evaluate a trained run on its test views; prints a table and writes RUN/metrics.json."""
     from .evaluate import metrics_table, parse_scales, scales_table
@@ -364,13 +386,14 @@ def eval_command(
 
 @app.command("render")
 def render_command(
-    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`"),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`",
+                               callback=_path_arg),
     split: str = typer.Option("test", "--split", help="test or train views"),
     video: bool = typer.Option(False, "--video", help="also write an orbit video (renders/orbit.webm, VP9: plays in browsers)"),
     frames: int = typer.Option(60, "--frames", min=1, max=100000, help="frames of the orbit video"),
     backend: str = _BACKEND,
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="folder to write into (default RUN/renders); "
-                                       "elsewhere, the run is only read (read-only media)"),
+                                       "elsewhere, the run is only read (read-only media)", callback=_path_arg),
 ) -> None:
     """Render a trained run's views to PNG (and an orbit video)."""
     from .runs import render_run
@@ -382,7 +405,7 @@ def render_command(
 @app.command("view")
 def view_command(
     runs: list[Path] = typer.Argument(..., metavar="RUN", help="run folders (a folder of runs, such as runs/compare, "
-                                      "stands for all of them)"),
+                                      "stands for all of them)", callback=_path_arg),
     port: int = typer.Option(8080, "--port", "-p", help="port to serve on"),
     host: str = typer.Option("127.0.0.1", "--host", help="address to listen on (127.0.0.1: this machine only; "
                              "0.0.0.0 opens the viewer to the network)"),
@@ -403,9 +426,10 @@ def view_command(
 @app.command("compare")
 def compare_command(
     models: list[str] = typer.Argument(..., metavar="MODEL", help="models to compare, e.g. gabor 2dgs (options: gabor:n_waves=8)"),
-    data: Optional[Path] = typer.Option(None, "--data", "-d", help="dataset (default: a built-in synthetic scene)"),
+    data: Optional[Path] = typer.Option(None, "--data", "-d", help="dataset (default: a built-in synthetic scene)",
+                                        callback=_path_arg),
     scene: str = typer.Option("sweater", "--scene", help="built-in synthetic scene when --data is not given"),
-    out: Path = typer.Option(Path("runs/compare"), "--out", "-o", help="output folder"),
+    out: Path = typer.Option(Path("runs/compare"), "--out", "-o", help="output folder", callback=_path_arg),
     iterations: Optional[int] = typer.Option(None, "--iterations", "-i", help="iterations per model (30000; quick 1500)"),
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n", help="equal primitive count for all"),
     densify: bool = typer.Option(False, "--densify/--no-densify", help="densify (off: the paper's fixed-count protocol)"),
@@ -443,14 +467,15 @@ def compare_command(
 @app.command("sweep", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 def sweep_command(
     ctx: typer.Context,
-    data: Optional[Path] = typer.Argument(None, metavar="DATA", help="dataset (default: a built-in synthetic scene, see --scene)"),
+    data: Optional[Path] = typer.Argument(None, metavar="DATA", help="dataset (default: a built-in synthetic scene, see --scene)",
+                                          callback=_path_arg),
     model: str = typer.Option("gabor", "--model", "-m", help="wave model swept over --n-waves (0 = the 2dgs model); "
                               "options follow it (--prune-waves 0.01) or inline (gabor:prune_waves=0.01)"),
     n_waves: str = typer.Option("0,1,2,4,8", "--n-waves", help="comma-separated wave counts"),
     num_primitives: str = typer.Option("1000,2000,4000", "--num-primitives", "-n",
                                        help="comma-separated fixed primitive counts"),
     scene: str = typer.Option("sweater", "--scene", help="built-in synthetic scene when DATA is not given"),
-    out: Path = typer.Option(Path("runs/sweep"), "--out", "-o", help="output folder"),
+    out: Path = typer.Option(Path("runs/sweep"), "--out", "-o", help="output folder", callback=_path_arg),
     iterations: Optional[int] = typer.Option(None, "--iterations", "-i", help="iterations per run (30000; quick 400)"),
     quick: bool = typer.Option(False, "--quick", help="small synthetic scene (96x96) and a short schedule"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
@@ -483,8 +508,10 @@ def sweep_command(
 # (mesh commands go here)
 @app.command("extract-mesh")
 def extract_mesh_command(
-    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`"),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="mesh file to write (default RUN/mesh.ply)"),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`",
+                               callback=_path_arg),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="mesh file to write (default RUN/mesh.ply)",
+                                       callback=_path_arg),
     voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="TSDF voxel size in world units "
                                                "(default: max(depth_trunc/1024, one pixel at the object))"),
     sdf_trunc: Optional[float] = typer.Option(None, "--sdf-trunc", help="TSDF truncation distance (default 5 voxels)"),
@@ -505,8 +532,9 @@ def extract_mesh_command(
 
 @app.command("export")
 def export_command(
-    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train` (or a model .pt file)"),
-    out: Path = typer.Option(..., "--out", "-o", help="PLY file to write"),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train` (or a model .pt file)",
+                               callback=_path_arg),
+    out: Path = typer.Option(..., "--out", "-o", help="PLY file to write", callback=_path_arg),
 ) -> None:
     """Export a trained model as a binary PLY that 3DGS/2DGS tools read (Gabor waves as extra properties)."""
     from .export import export_run
