@@ -30,6 +30,12 @@ def backend_for_test(name: str):
     return b
 
 
+def pytest_addoption(parser):
+    parser.addoption("--fuzz-cases", type=int, default=None, metavar="N",
+                     help="mutated inputs per loader in tests/test_fuzz.py (default: a quick CI run); raise it after "
+                          "changing a loader")
+
+
 def pytest_generate_tests(metafunc):
     if "any_backend" in metafunc.fixturenames:
         metafunc.parametrize("any_backend", ALL_BACKENDS, indirect=True)
