@@ -295,7 +295,8 @@ def read_ply_vertices(path, *, fix: str = PLY_FIX, error=SplatzooError):
                               or column.max() > info.max):
                     raise error(f"{path}: the {ply_type_name(t)} property {k} holds values that are not whole "
                                 f"numbers in {info.min}..{info.max}; the file is damaged. {fix}")
-            arr[k] = column
+            with np.errstate(over="ignore"):  # a float property beyond float32 reads as inf, as in a binary file
+                arr[k] = column
         return arr, comments
     if fmt not in ("binary_little_endian", "binary_big_endian"):
         raise error(f"{path}: unsupported PLY format {fmt!r} (ascii, binary_little_endian or binary_big_endian)")
