@@ -97,12 +97,16 @@ def _area_average(img: torch.Tensor, f: int) -> torch.Tensor:
     return torch.nn.functional.avg_pool2d(img.permute(2, 0, 1)[None], f)[0].permute(1, 2, 0)
 
 
-def test_a_small_render_is_the_area_average_of_a_big_one():
+@pytest.mark.parametrize("kernel", ["gaussian", "beta"])
+def test_a_small_render_is_the_area_average_of_a_big_one(kernel):
     """Textured surfels with waves of up to ~1 cycle per pixel at 128 px: the 32 px anti-aliased render is close
-    to the 4x4 average of the 128 px render; the unfiltered one is not."""
+    to the 4x4 average of the 128 px render; the unfiltered one is not. For every falloff (the Beta kernel is
+    prefiltered as the footprint's gain times f at its q: an approximation, checked here)."""
     s, cam = sphere_and_wall(3000, 128, 128, K=4, seed=3, dtype=D, px_sigma=(2.0, 6.0))
     s.wave_vectors.mul_(4.0)
     s.opacities.fill_(0.95)
+    if kernel == "beta":
+        s.falloff = torch.rand(s.num, generator=torch.Generator().manual_seed(4), dtype=D)
     psnr = {}
     for name, st in (("aa", ANTIALIASED), ("plain", SETTINGS)):
         big = rasterize(s, cam, backend="cpu", settings=st).rgb
