@@ -182,7 +182,6 @@ def bench_command(
                        f"{row['fps_full']:7.2f} FPS with every output ({backend} backend)")
         return
 
-
     bench_file = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_rasterizer.py"
     if not bench_file.is_file():
         raise SplatzooError(f"{bench_file} not found: `splatzoo bench` runs from a source checkout of splatzoo")
