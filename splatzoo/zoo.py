@@ -240,6 +240,9 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
         raise fail(f"its state does not fit model {name!r} with config {_brief(config)} "
                    f"({type(e).__name__}: {_brief(e)})") from None
     _check_shapes(name, expected, {**model.state_dict(), **model.per_primitive()}, variable, fail)
+    empty = model.draws_nothing()
+    if empty:
+        raise fail(empty)
     model.name = name
     model.antialias = antialias
     model.background = background

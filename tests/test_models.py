@@ -253,3 +253,21 @@ def test_nearest_neighbour_distance_matches_brute_force():
     assert torch.equal(nearest_neighbour_distance(pts[:1]), torch.ones(1, dtype=torch.float64))
     two = nearest_neighbour_distance(torch.tensor([[0.0, 0, 0], [3.0, 4, 0]]))  # k shrinks to N - 1
     assert torch.allclose(two, torch.tensor([5.0, 5.0]))
+
+
+def test_a_model_that_draws_nothing_is_refused_on_load(tmp_path):
+    """Every opacity below 1/255 (a diverged run, an edited file): nothing renders and nothing can be learned; loading
+    names the parameter instead of producing black images and a training that stands still."""
+    from splatzoo.errors import SplatzooError
+
+    pts, cols = point_cloud()
+    model = splatzoo.create_model("beta", pts, cols, seed=1)
+    with torch.no_grad():
+        model.logit_opacity.fill_(-20.0)
+    splatzoo.save_model(model, tmp_path / "model.pt")
+    with pytest.raises(SplatzooError, match="logit_opacity: every one of its 64 surfels has an opacity below 1/255"):
+        splatzoo.load_model(tmp_path / "model.pt")
+    with torch.no_grad():
+        model.logit_opacity[3] = 0.0  # one visible surfel is a model
+    splatzoo.save_model(model, tmp_path / "model.pt")
+    assert splatzoo.load_model(tmp_path / "model.pt").num_primitives == 64

@@ -77,6 +77,12 @@ class SplatModel(nn.Module):
         exponential position schedule."""
         raise NotImplementedError
 
+    def draws_nothing(self) -> str | None:
+        """Why this model, as its parameters stand, renders nothing from anywhere (and so can learn nothing: no pair
+        contributes, no gradient flows), naming the parameter; None when it can draw. Loading refuses such a model.
+        SplatModel knows no opacity: models that do override it."""
+        return None
+
     # --- rendering ----------------------------------------------------------------------------------
     def render(self, camera: Camera, *, background=None, backend="auto", surfels: Surfels | None = None,
                image_only: bool = False) -> RenderOutput:
@@ -241,6 +247,15 @@ class SurfelModel(SplatModel):
         else:
             self.quats.copy_(torch.rand(points.shape[0], 4, generator=generator))
         self.logit_opacity.fill_(math.log(initial_opacity / (1 - initial_opacity)))
+
+    def draws_nothing(self) -> str | None:
+        from ..rasterizers.common import SETTINGS
+
+        n = self.logit_opacity.shape[0]
+        if n and float(torch.sigmoid(self.logit_opacity.detach()).max()) < SETTINGS.alpha_min:
+            return (f"logit_opacity: every one of its {n} surfels has an opacity below 1/255, which the rasterizer "
+                    "skips: the model draws nothing and cannot learn (the run diverged or the file was edited)")
+        return None
 
     def geometry(self) -> dict[str, torch.Tensor]:
         """Surfels geometry fields in activated form. The scales stop at MAX_SCALE (types.py: the range where every

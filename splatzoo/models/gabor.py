@@ -480,9 +480,25 @@ class GaborModel(SurfelModel):
         if "folded_weight" in state and not self.residual:
             state = _upgrade_single_fold(state)
         mask = state["wave_mask"].long()
-        n, k, width = mask.shape[0], int(self.config.n_waves), int(state["wave_width"])
+        n, k = mask.shape[0], int(self.config.n_waves)
+        width = state.get("wave_width")
+        if not (isinstance(width, torch.Tensor) and width.numel() == 1 and not width.is_floating_point()
+                and 0 <= int(width) <= k):  # it sizes the arrays below: a crafted count must not allocate gigabytes
+            raise ShapeError(f"the packed waves' width (wave_width) must be a whole number in 0..n_waves={k}, got "
+                             f"{str(width)[:80]}; the file is damaged: save the model again")
+        width = int(width)
+        if mask.dim() != 1 or bool(((mask < 0) | (mask >= (1 << k))).any()):
+            raise ShapeError(f"wave_mask must be [N] with values in 0..2^{k}-1 (one bit per orientation); the file "
+                             "is damaged: save the model again")
         bits = (mask[:, None] >> torch.arange(k)) & 1  # [N,K] orientation i in use
         counts = bits.sum(1)
+        if n and int(counts.max()) > width:
+            raise ShapeError(f"wave_mask marks up to {int(counts.max())} waves on a surfel but wave_width is {width}; "
+                             "the file is damaged: save the model again")
+        for name in self.wave_parameter_names:
+            if tuple(state[name].shape[:1]) != (int(counts.sum()),):
+                raise ShapeError(f"{name} holds {tuple(state[name].shape)} values for the {int(counts.sum())} waves "
+                                 "wave_mask marks; the file is damaged: save the model again")
         live = torch.arange(width)[None] < counts[:, None]
         index = torch.sort(1 - bits, dim=1, stable=True).indices[:, :width]  # set bits first, increasing
         index = torch.where(live, index, torch.zeros_like(index))

@@ -203,7 +203,8 @@ class ViewLoss(NamedTuple):
 # ---- a checkpoint's training state, checked before anything trains (a ValueError names what is wrong) --------------
 def _number(value, what: str, *, integer: bool = False) -> float:
     ok = isinstance(value, int) if integer else isinstance(value, (int, float))
-    if not ok or isinstance(value, bool) or not math.isfinite(value):
+    # a Python int is finite however large (math.isfinite(10**400) would raise OverflowError)
+    if not ok or isinstance(value, bool) or (isinstance(value, float) and not math.isfinite(value)):
         raise ValueError(f"{what} is {value!r}, not a finite {'integer' if integer else 'number'}")
     return value
 
@@ -213,7 +214,8 @@ def check_progress(state: dict, cfg: "TrainConfig", num_views: int) -> None:
     view indices) and the recent error average."""
     it = _number(state["iteration"], "iteration", integer=True)
     if not 0 <= it <= cfg.iterations:
-        raise ValueError(f"iteration {it} is outside the run's 0..{cfg.iterations}")
+        shown = str(it) if abs(it) < 10 ** 15 else f"{str(it)[:12]}... ({len(str(it))} digits)"
+        raise ValueError(f"iteration {shown} is outside the run's 0..{cfg.iterations}")
     if _number(state["train_seconds"], "train_seconds") < 0:
         raise ValueError(f"train_seconds is negative ({state['train_seconds']})")
     order = state["view_order"]
@@ -222,7 +224,8 @@ def check_progress(state: dict, cfg: "TrainConfig", num_views: int) -> None:
                          f"{type(order).__name__} of {len(order) if isinstance(order, (list, tuple)) else '?'}")
     for i in order:
         if _number(i, "a view_order entry", integer=True) < 0 or i >= num_views:
-            raise ValueError(f"view_order names view {i}, but the dataset has {num_views} training views")
+            shown = str(i) if abs(i) < 10 ** 15 else f"{str(i)[:12]}... ({len(str(i))} digits)"
+            raise ValueError(f"view_order names view {shown}, but the dataset has {num_views} training views")
     if len(set(order)) != len(order):
         raise ValueError("view_order names a training view twice")
     if state.get("recent_error") is not None and _number(state["recent_error"], "recent_error") < 0:
