@@ -39,7 +39,8 @@ RUN_FORMAT = 1
 LOCK_NAME = ".splatzoo.lock"
 # everything a run writes; `overwrite` removes exactly these (never a file splatzoo did not write)
 RUN_ENTRIES = ("config.json", "checkpoint.pt", "model.pt", "train_log.jsonl", "metrics.json", "renders", "mesh.ply")
-SCENE_OPTION_DEFAULTS = {"resolution": None, "max_width": None, "test_every": 8, "background": "auto"}
+SCENE_OPTION_DEFAULTS = {"resolution": None, "max_width": None, "test_every": 8, "background": "auto",
+                         "skip_missing": False}
 
 
 class RunLockedError(SplatzooError):

@@ -9,6 +9,17 @@ dataset folder if present (x, y, z and optional red, green, blue); otherwise, as
 points with random colours (seeded, so loading twice gives the same cloud) drawn uniformly in a cube around the point
 the cameras look at, of half-size RANDOM_BOX_PER_DISTANCE x their mean distance to it: [-1.3, 1.3]^3 for the
 NeRF-synthetic scenes (cameras 4.03 from the origin), and the same proportion at any other scale.
+
+nerfstudio / instant-ngp additions, all read at the top level or per frame (a frame's value wins):
+- lens distortion: camera_model (nerfstudio: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV,
+  OPENCV_FISHEYE; instant-ngp: is_fisheye) with k1, k2, k3, k4, p1, p2 (or nerfstudio's distortion_params list).
+  Distorted photos are undistorted as the COLMAP path does (pycolmap's undistorter: the same PINHOLE camera, the same
+  crop) into DATA/undistorted-transforms/ (masks and alpha too), once; later loads reuse the files. A projection
+  that is not perspective (EQUIRECTANGULAR, ...) is refused by name.
+- applied_transform / applied_scale: see _points_frame (how the point cloud is put in the frames' frame).
+- frames whose image is missing stop loading with an error that names them and the skip_missing option
+  (--skip-missing); with it they are left out and scene.notes says which.
+- keys splatzoo does not use (aabb_scale, sharpen, depth_file_path, ...) are listed once in scene.notes.
 """
 from __future__ import annotations
 
@@ -22,8 +33,8 @@ import torch
 from ..errors import DataError
 from ..io import ply_type_name, read_ply_vertices
 from ..types import Camera
-from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_has_alpha, image_size, mesh_path_of,
-                    scale_camera, split_views, target_scale)
+from .scene import (DatasetFormat, Scene, View, camera_extent, check_cameras, find_mask, image_has_alpha, image_size,
+                    mesh_path_of, read_image, read_mask, scale_camera, split_views, target_scale)
 
 RANDOM_POINTS = 10_000
 RANDOM_BOX_PER_DISTANCE = 1.3 / 4.0311  # NeRF-synthetic's [-1.3, 1.3]^3 box for its cameras 4.03 from the origin
@@ -128,7 +139,8 @@ def _pose(frame: dict, where: str, i: int) -> np.ndarray:
     return c2w
 
 
-def _image_path(root: Path, file_path: str, where: Path) -> Path:
+def _image_path(root: Path, file_path: str, where: Path) -> Path | None:
+    """The image a frame names (trying .png/.jpg/.jpeg after a bare name, as NeRF-synthetic writes them), or None."""
     p = root / file_path
     try:
         if p.is_file():
@@ -140,31 +152,159 @@ def _image_path(root: Path, file_path: str, where: Path) -> Path:
     except OSError as e:  # a name longer than the file system allows, ...
         raise DataError(f"image path {str(p)[:120]}... (from {where}) cannot be looked up ({e.strerror or e}); "
                         "fix the frame's file_path") from None
-    raise DataError(f"image {p} (from {where}) does not exist (also tried .png/.jpg); restore it or remove the "
-                    "frame from the transforms file")
+    return None
 
 
-def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution, max_width) -> list[View]:
+# --- what a transforms file may hold ------------------------------------------------------------------------------
+
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")   # nerfstudio's order, as in its distortion_params list
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
+                   "is_fisheye", "distortion_params", *DISTORTION_KEYS)
+USED_KEYS = frozenset({"frames", "ply_file_path", "applied_transform", "applied_scale", *_INTRINSIC_KEYS})
+USED_FRAME_KEYS = frozenset({"file_path", "transform_matrix", "mask_path", *_INTRINSIC_KEYS})
+# nerfstudio camera_model -> the COLMAP model its photos are undistorted with (None: a pinhole camera unless k/p are
+# given, as nerfstudio reads any perspective camera with its distortion terms)
+PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+FISHEYE_MODELS = ("OPENCV_FISHEYE",)
+UNDISTORTED_DIR = "undistorted-transforms"
+
+
+def _camera_model(frame: dict, meta: dict, where: Path, i: int) -> str:
+    """PERSPECTIVE or FISHEYE for a frame, or a DataError naming a projection splatzoo cannot train on."""
+    model = frame.get("camera_model", meta.get("camera_model"))
+    fisheye = frame.get("is_fisheye", meta.get("is_fisheye"))
+    if fisheye not in (None, True, False):
+        raise DataError(f"{where}: frame {i}: is_fisheye must be true or false, not {fisheye!r:.60}")
+    if model is None:
+        return "FISHEYE" if fisheye else "PERSPECTIVE"
+    if not isinstance(model, str):
+        raise DataError(f"{where}: camera_model must be a name such as OPENCV, not {model!r:.60}")
+    if model in PERSPECTIVE_MODELS and not fisheye:
+        return "PERSPECTIVE"
+    if model in FISHEYE_MODELS:
+        return "FISHEYE"
+    known = ", ".join(PERSPECTIVE_MODELS + FISHEYE_MODELS)
+    kind = {"EQUIRECTANGULAR": " (a spherical 360-degree panorama)"}.get(model, "")
+    raise DataError(f"{where}: frame {i} uses camera_model {model[:60]}{kind}, which splatzoo cannot use: training "
+                    f"needs perspective images, and the camera models it can undistort are {known}. Cut panoramas "
+                    "into perspective views first, or re-run SfM with one of those models")
+
+
+def _distortion(frame: dict, meta: dict, where: Path, i: int) -> dict[str, float]:
+    """k1, k2, k3, k4, p1, p2 of a frame (0 when absent): per-frame keys, else the file's keys, else nerfstudio's
+    distortion_params list [k1, k2, k3, k4, p1, p2]."""
+    terms = {}
+    listed = frame.get("distortion_params", meta.get("distortion_params"))
+    if listed is not None:
+        if not (isinstance(listed, list) and len(listed) == 6 and all(_is_number(v) and _is_finite(v)
+                                                                        for v in listed)):
+            raise DataError(f"{where}: frame {i}: distortion_params must be 6 finite numbers [k1, k2, k3, k4, p1, "
+                            f"p2], not {listed!r:.80}")
+        terms = dict(zip(DISTORTION_KEYS, map(float, listed)))
+    for key in DISTORTION_KEYS:
+        value = _option(frame, meta, key, where, i, hint=" (a lens distortion coefficient)")
+        if value is not None:
+            terms[key] = value
+    return {k: terms.get(k, 0.0) for k in DISTORTION_KEYS}
+
+
+def _colmap_camera(kind: str, terms: dict[str, float], fx, fy, cx, cy, w, h, where: Path, i: int):
+    """The COLMAP camera that projects as this frame's lens does, or None for a pinhole camera (nothing to warp)."""
+    from .camera_models import import_pycolmap
+
+    k1, k2, k3, k4, p1, p2 = (terms[k] for k in DISTORTION_KEYS)
+    if kind == "FISHEYE":
+        if p1 or p2:
+            raise DataError(f"{where}: frame {i} is a fisheye camera (OPENCV_FISHEYE) with p1/p2 = {p1:g}/{p2:g}; "
+                            "that model has no tangential terms (k1..k4 only). Remove p1 and p2 or use OPENCV")
+        model, params = "OPENCV_FISHEYE", [fx, fy, cx, cy, k1, k2, k3, k4]
+    elif not any(terms.values()):
+        return None
+    elif k4:
+        raise DataError(f"{where}: frame {i} gives k4 = {k4:g} for a perspective camera (an r^8 radial term), which "
+                        "COLMAP's undistorter has no model for; refit the camera with k1, k2, k3, p1, p2 (OPENCV), "
+                        "or mark it camera_model OPENCV_FISHEYE if it is a fisheye lens")
+    elif k3:
+        model, params = "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]
+    else:
+        model, params = "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
+    return import_pycolmap().Camera(model=model, width=w, height=h, params=params, camera_id=1)
+
+
+def _frame_path(frame, i: int, root: Path, meta_path: Path) -> str:
+    if not isinstance(frame, dict):
+        raise DataError(f"{meta_path}: frame {i} must be an object with file_path and transform_matrix, not "
+                        f"{frame!r:.60}")
+    file_path = frame.get("file_path")
+    if file_path is None or file_path == "":
+        raise DataError(f"{meta_path}: frame {i} has no file_path (the image's path relative to {root}); add it "
+                        "or remove the frame")
+    if not isinstance(file_path, str):
+        raise DataError(f"{meta_path}: frame {i} file_path must be a string (a path relative to {root}), not "
+                        f"{file_path!r:.60}")
+    return file_path
+
+
+def _mask_of(frame: dict, root: Path, name: str, meta_path: Path, i: int) -> Path | None:
+    """The frame's mask: nerfstudio's per-frame mask_path, else masks/<name> (see find_mask)."""
+    given = frame.get("mask_path")
+    if given is not None:
+        if not isinstance(given, str) or not given:
+            raise DataError(f"{meta_path}: frame {i} mask_path must be a path relative to {root}, not {given!r:.60}")
+        found = _image_path(root, given, meta_path)
+        if found is None:
+            raise DataError(f"{meta_path}: frame {i} names the mask {root / given} (mask_path), which does not "
+                            "exist; restore it or load without masks")
+        return found
+    return find_mask(root / "masks", name) if (root / "masks").is_dir() else None
+
+
+class _Loaded:
+    """What reading one transforms file found besides its views: skipped frames and keys splatzoo does not use."""
+
+    def __init__(self, meta_path: Path, meta: dict):
+        self.meta_path, self.meta = meta_path, meta
+        self.skipped: list[str] = []
+        self.ignored = sorted(k for k in meta if k not in USED_KEYS)
+        self.ignored_per_frame: dict[str, int] = {}
+        self.distorted = 0
+
+
+def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution, max_width,
+                skip_missing: bool = False) -> tuple[list[View], _Loaded]:
     meta = _read_json(meta_path)
+    found = _Loaded(meta_path, meta)
+    frames = meta["frames"]
+    paths = [_image_path(root, _frame_path(f, i, root, meta_path), meta_path) for i, f in enumerate(frames)]
+    missing = [i for i, path in enumerate(paths) if path is None]
+    if missing:
+        names = [str(root / frames[i]["file_path"]) for i in missing]
+        listing = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+        if len(missing) == len(frames):
+            raise DataError(f"{meta_path}: none of its {len(frames)} frames' images exists (image {names[0]} does not "
+                            "exist; also tried .png/.jpg/.jpeg); restore the images or fix the file_path entries")
+        if not skip_missing:
+            raise DataError(f"{meta_path}: {len(missing)} of {len(frames)} frames name an image that does not exist "
+                            f"(also tried .png/.jpg/.jpeg): image {listing}. Restore them, remove those frames from "
+                            "the transforms file, or pass --skip-missing (load_scene(..., skip_missing=True)) to "
+                            "train without them")
+        found.skipped = [str(Path(frames[i]["file_path"])) for i in missing]
     views = []
+    lenses = []   # (index in views, COLMAP camera of the photo) for the frames whose photos must be undistorted
     size = None
-    for i, frame in enumerate(meta["frames"]):
-        if not isinstance(frame, dict):
-            raise DataError(f"{meta_path}: frame {i} must be an object with file_path and transform_matrix, not "
-                            f"{frame!r:.60}")
-        file_path = frame.get("file_path")
-        if file_path is None or file_path == "":
-            raise DataError(f"{meta_path}: frame {i} has no file_path (the image's path relative to {root}); add it "
-                            "or remove the frame")
-        if not isinstance(file_path, str):
-            raise DataError(f"{meta_path}: frame {i} file_path must be a string (a path relative to {root}), not "
-                            f"{file_path!r:.60}")
+    for i, frame in enumerate(frames):
+        path = paths[i]
+        if path is None:
+            continue
+        for key in frame:
+            if key not in USED_FRAME_KEYS:
+                found.ignored_per_frame[key] = found.ignored_per_frame.get(key, 0) + 1
         c2w = _pose(frame, meta_path, i)
-        path = _image_path(root, file_path, meta_path)
         w, h = image_size(path)
         if size is None:
             size = (w, h, path)
-        elif (w, h) != size[:2] and "w" not in frame and "fl_x" not in frame:
+        elif (w, h) != size[:2] and "w" not in frame and "w" not in meta and "fl_x" not in frame:
+            # (intrinsics written for a stated size w, h are rescaled to each image: a downscaled copy is fine)
             raise DataError(f"images in {meta_path} differ in size: {size[2]} is {size[0]}x{size[1]} but {path} is "
                             f"{w}x{h}; a shared camera_angle_x needs one image size. Resize them to one size")
 
@@ -183,24 +323,156 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
         fw, fh = get("w", positive=True), get("h", positive=True)
         fw, fh = fw or w, fh or h
         if (fw, fh) != (w, h):
-            fx *= w / fw   # intrinsics written for another image size: rescale them
+            fx *= w / fw   # intrinsics written for another image size: rescale them (distortion terms are unitless)
             fy *= h / fh
         cx = (get("cx") if get("cx") is not None else fw / 2) * (w / fw)
         cy = (get("cy") if get("cy") is not None else fh / 2) * (h / fh)
+        lens = _colmap_camera(_camera_model(frame, meta, meta_path, i), _distortion(frame, meta, meta_path, i),
+                              fx, fy, cx, cy, w, h, meta_path, i)
         w2c = np.linalg.inv(c2w @ _OPENGL_TO_OPENCV)
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
         name = str(path.relative_to(root))
-        cam = Camera(torch.from_numpy(w2c), torch.from_numpy(K), w, h, name)
-        cam = scale_camera(cam, target_scale(w, h, resolution, max_width))
         mask_path = None
         if masks:
-            mask_path = find_mask(root / "masks", name) if (root / "masks").is_dir() else None
+            mask_path = _mask_of(frame, root, name, meta_path, i)
             if mask_path is None and not image_has_alpha(path):
                 raise DataError(f"masks requested but image {path} has no alpha channel and no mask in "
                                 f"{root / 'masks'}; load without masks")
+        if lens is not None:
+            lenses.append((len(views), lens, frame))
+        cam = Camera(torch.from_numpy(w2c), torch.from_numpy(K), w, h, name)
         views.append(View(camera=cam, name=name, path=path, mask_path=mask_path, use_mask=masks,
                           background=tuple(background)))
-    return views
+    if lenses:
+        # the checks load_scene makes (in float32, as training sees them), before any photo is warped
+        check_cameras([View(camera=scale_camera(v.camera, 1.0), name=v.name) for v in views], meta_path)
+        _undistort_views(root, views, lenses, masks)
+        found.distorted = len(lenses)
+    for v in views:
+        v.camera = scale_camera(v.camera, target_scale(v.camera.width, v.camera.height, resolution, max_width))
+    return views, found
+
+
+# --- undistortion ------------------------------------------------------------------------------------------------
+
+def _undistorted_dir(root: Path) -> Path:
+    """DATA/undistorted-transforms/, or a per-dataset folder under ~/.cache/splatzoo when DATA is read-only."""
+    import hashlib
+    import os
+
+    if os.access(root, os.W_OK):
+        return root / UNDISTORTED_DIR
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "splatzoo" / UNDISTORTED_DIR
+    return cache / hashlib.sha1(str(root.resolve()).encode()).hexdigest()[:16]
+
+
+def _stamp(lens, *files: Path | None) -> str:
+    """What an undistorted file was made from: the camera and each source file's path, size and time."""
+    import hashlib
+
+    h = hashlib.sha1(f"{lens.model_name}|{lens.width}x{lens.height}|{list(lens.params)!r}".encode())
+    for f in files:
+        if f is not None:
+            st = f.stat()
+            h.update(f"|{f.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+    return h.hexdigest()[:12]
+
+
+def _warp(options, lens, px: np.ndarray) -> np.ndarray:
+    """pycolmap's undistortion of uint8 [H,W,3] or [H,W] pixels (the COLMAP path's own warp)."""
+    from .camera_models import import_pycolmap
+
+    pycolmap = import_pycolmap()
+    out, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(np.ascontiguousarray(px)), lens)
+    return np.asarray(out.to_array())
+
+
+def _write_png(path: Path, px: np.ndarray) -> None:
+    """Write atomically (a temporary file, then rename): a cache file is whole or absent."""
+    import os
+    import tempfile
+
+    import cv2
+
+    if px.ndim == 3:
+        px = px[:, :, [2, 1, 0, 3]] if px.shape[2] == 4 else px[:, :, ::-1]
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(px))
+    if not ok:
+        raise DataError(f"cannot encode the undistorted image {path}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".png")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    import re
+
+    # earlier versions of this file (another stamp), left by a changed photo or camera
+    pattern = re.compile(re.escape(path.name.rsplit(".", 2)[0]) + r"\.[0-9a-f]{12}\.png")
+    for stale in path.parent.iterdir():
+        if stale != path and pattern.fullmatch(stale.name):
+            stale.unlink(missing_ok=True)
+
+
+def _undistort_views(root: Path, views: list[View], lenses: list, masks: bool) -> None:
+    """Point each distorted view at an undistorted copy of its photo (and mask) with the PINHOLE camera pycolmap's
+    undistorter makes from its lens, as the COLMAP path does; copies are made once and kept beside the dataset."""
+    import sys
+
+    from .camera_models import for_undistortion, import_pycolmap, projection_profile
+
+    pycolmap = import_pycolmap()
+    options = pycolmap.UndistortCameraOptions()
+    target = _undistorted_dir(root)
+    jobs = []
+    warned = set()
+    for index, lens, frame in lenses:
+        view = views[index]
+        lens = for_undistortion(lens) or lens   # a fisheye lens with zero terms is still warped (camera_models.py)
+        key = (lens.model_name, tuple(lens.params), lens.width, lens.height)
+        if key not in warned:
+            warned.add(key)
+            fold = projection_profile(lens)["fold_px"]
+            if fold is not None:
+                print(f"splatzoo: warning: {view.name} ({lens.model_name}: {lens.params_to_string()}) has distortion "
+                      f"that folds back {fold:.0f} px from the image centre, inside the photo, so the undistorted "
+                      "images show ghost rings; this calibration is probably wrong", file=sys.stderr, flush=True)
+        try:
+            pinhole = pycolmap.undistort_camera(options, lens)
+        except Exception as e:  # pycolmap rejects a camera it cannot invert
+            raise DataError(f"cannot undistort {view.name}: pycolmap rejects its camera ({lens.model_name}: "
+                            f"{lens.params_to_string()}): {e}; check the distortion terms") from None
+        w, h = int(pinhole.width), int(pinhole.height)
+        if not (1 <= w <= 4 * lens.width and 1 <= h <= 4 * lens.height):
+            raise DataError(f"cannot undistort {view.name}: its camera ({lens.model_name}: {lens.params_to_string()}) "
+                            f"would become a {w}x{h} image from a {lens.width}x{lens.height} photo; check the "
+                            "distortion terms")
+        stem = Path(view.name).with_suffix("")
+        mask_src = view.mask_path if masks else None
+        out = target / f"{stem}.{_stamp(lens, view.path)}.png"
+        mask_out = target / "masks" / f"{stem}.{_stamp(lens, mask_src)}.png" if mask_src is not None else None
+        if not out.is_file() or (mask_out is not None and not mask_out.is_file()):
+            jobs.append((view, lens, out, mask_src, mask_out))
+        K = np.array([[pinhole.focal_length_x, 0, pinhole.principal_point_x],
+                      [0, pinhole.focal_length_y, pinhole.principal_point_y], [0, 0, 1]], dtype=np.float64)
+        view.camera = Camera(view.camera.world_to_camera, torch.from_numpy(K), w, h, view.camera.name)
+        view.path, view.mask_path = out, mask_out
+    if jobs:
+        print(f"splatzoo: undistorting {len(jobs)} image(s) of {root} into {target} (done once, reused later) ...",
+              file=sys.stderr, flush=True)
+    for view, lens, out, mask_src, mask_out in jobs:
+        source = root / view.name
+        if not out.is_file():
+            px = read_image(source)
+            warped = _warp(options, lens, px[:, :, :3])
+            if px.shape[2] == 4:   # alpha is warped by the same map
+                warped = np.concatenate([warped, _warp(options, lens, px[:, :, 3])[:, :, None]], axis=2)
+            _write_png(out, warped)
+        if mask_out is not None and not mask_out.is_file():
+            _write_png(mask_out, _warp(options, lens, read_mask(mask_src)))
 
 
 def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -238,42 +510,148 @@ def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def load_blender(root, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
-                 background=(0.0, 0.0, 0.0), masks: bool = False) -> Scene:
+                 background=(0.0, 0.0, 0.0), masks: bool = False, skip_missing: bool = False) -> Scene:
     """Read a Blender/NeRF-synthetic folder. With transforms_train.json the split comes from the files
     (transforms_test.json is the test set; test_every is ignored); a single transforms.json is split by
-    test_every. See the module docstring for how initial points are chosen."""
+    test_every. skip_missing: leave out frames whose image does not exist (scene.notes lists them) instead of
+    stopping with an error. See the module docstring for lens distortion and how initial points are chosen."""
     root = Path(root)
     train_file, test_file = root / "transforms_train.json", root / "transforms_test.json"
+    options = (background, masks, resolution, max_width, skip_missing)
     if train_file.is_file():
-        train = _views_from(root, train_file, background, masks, resolution, max_width)
-        test = _views_from(root, test_file, background, masks, resolution, max_width) if test_file.is_file() else []
+        train, loaded = _views_from(root, train_file, *options)
+        found = [loaded]
+        test = []
+        if test_file.is_file():
+            test, loaded = _views_from(root, test_file, *options)
+            found.append(loaded)
         train.sort(key=lambda v: v.name)
         test.sort(key=lambda v: v.name)
     else:
-        views = _views_from(root, root / "transforms.json", background, masks, resolution, max_width)
+        views, loaded = _views_from(root, root / "transforms.json", *options)
+        found = [loaded]
         train, test = split_views(views, test_every, root)
-    notes = []
-    ply = _named_ply(root, train_file if train_file.is_file() else root / "transforms.json")
+    notes = _notes(found)
+    meta_path = train_file if train_file.is_file() else root / "transforms.json"
+    meta = found[0].meta
+    ply = _named_ply(root, meta_path, meta)
     if ply is None:
         ply = next((p for p in (root / "points3d.ply", root / "points3D.ply") if p.is_file()), None)
+    applied = _applied(meta, meta_path)
+    if applied is not None:
+        notes.append(applied[2])
     if ply is not None:
         xyz, rgb = read_ply_points(ply)
         if len(xyz) == 0:
             raise DataError(f"{ply} holds no points; delete it to start from random points")
         if rgb is None:
             rgb = np.full_like(xyz, 0.5)
+        if applied is not None:
+            xyz, note = _points_frame(xyz, applied, [v.camera for v in train + test], ply.name)
+            notes.append(note)
     else:
         xyz, rgb, note = _random_points([v.camera for v in train + test])
         notes.append(note)
+    if (root / "dataparser_transforms.json").is_file():
+        notes.append("dataparser_transforms.json (the frame a nerfstudio model was trained in) is not applied: "
+                     "splatzoo trains in the frame of the transforms file's own poses")
     points, colors = torch.from_numpy(np.ascontiguousarray(xyz)), torch.from_numpy(np.ascontiguousarray(rgb))
     return Scene(name=root.resolve().name, root=root, train=train, test=test, points=points, colors=colors,
                  extent=camera_extent([v.camera for v in train], points), background=tuple(background),
                  mesh_path=mesh_path_of(root), notes=notes)
 
 
-def _named_ply(root: Path, meta_path: Path) -> Path | None:
+def _notes(found: list[_Loaded]) -> list[str]:
+    """What loading skipped, undistorted and ignored, once per transforms file."""
+    notes = []
+    for f in found:
+        name = f.meta_path.name
+        if f.skipped:
+            listing = ", ".join(f.skipped[:10]) + (f", ... ({len(f.skipped) - 10} more)" if len(f.skipped) > 10 else "")
+            notes.append(f"{name}: skipped {len(f.skipped)} frame{'s' if len(f.skipped) > 1 else ''} whose images are "
+                         f"missing: {listing}")
+        if f.distorted:
+            notes.append(f"{name}: {f.distorted} frame(s) have lens distortion: training on undistorted copies of their "
+                         f"photos (pinhole cameras, as COLMAP's undistorter makes them) in {UNDISTORTED_DIR}/")
+        ignored = [k[:40] for k in f.ignored]
+        ignored += [f"{k[:40]} (in {n} frame{'s' if n > 1 else ''})" for k, n in sorted(f.ignored_per_frame.items())]
+        if ignored:
+            shown = ", ".join(ignored[:20]) + (f", ... ({len(ignored) - 20} more)" if len(ignored) > 20 else "")
+            notes.append(f"{name}: ignored {len(ignored)} key{'s' if len(ignored) > 1 else ''} that splatzoo does not "
+                         f"use: {shown}")
+    return notes
+
+
+def _applied(meta: dict, where: Path) -> tuple[np.ndarray, float, str] | None:
+    """(applied_transform as 4x4, applied_scale, a note) when the transforms file records them, else None."""
+    T, s = meta.get("applied_transform"), meta.get("applied_scale")
+    if T is None and s is None:
+        return None
+    M = np.eye(4)
+    if T is not None:
+        ok = (isinstance(T, list) and len(T) in (3, 4) and all(isinstance(r, list) and len(r) == 4 for r in T)
+              and all(_is_number(v) and _is_finite(v) for r in T for v in r))
+        if not ok:
+            raise DataError(f"{where}: applied_transform must be 3 (or 4) rows of 4 finite numbers, not {T!r:.80}")
+        M[:len(T)] = np.asarray(T, dtype=np.float64)
+        if not np.allclose(M[3], [0, 0, 0, 1]) or abs(np.linalg.det(M[:3, :3])) < 1e-9:
+            raise DataError(f"{where}: applied_transform {T!r:.80} is not an invertible affine transform")
+    scale = 1.0
+    if s is not None:
+        if not (_is_number(s) and _is_finite(s) and s > 0):
+            raise DataError(f"{where}: applied_scale must be a number greater than 0, not {s!r:.60}")
+        scale = float(s)
+    said = []
+    if T is not None:
+        said.append("applied_transform " + str(np.round(M[:3], 4).tolist()))
+    if s is not None:
+        said.append(f"applied_scale {scale:g}")
+    return M, scale, (f"{where.name} records {' and '.join(said)} (how its frames were made from the original "
+                      "capture); its camera poses are used as they are, in that transformed frame")
+
+
+def _visible(xyz: np.ndarray, cameras: list[Camera]) -> float:
+    """How much of the point cloud the cameras see: the mean, over points, of the fraction of cameras that have the
+    point in front of them and inside their image (points of a real capture are each seen by several)."""
+    if not len(xyz) or not cameras:
+        return 0.0
+    pts = xyz[np.random.default_rng(0).choice(len(xyz), min(len(xyz), 2000), replace=False)].astype(np.float64)
+    cams = cameras[:: max(1, len(cameras) // 50)]
+    seen = np.zeros(len(pts))
+    for cam in cams:
+        w2c, K = cam.world_to_camera.double().numpy(), cam.K.double().numpy()
+        p = pts @ w2c[:3, :3].T + w2c[:3, 3]
+        with np.errstate(all="ignore"):
+            uv = (p @ K.T)[:, :2] / p[:, 2:3]
+        seen += (p[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
+    return float(seen.mean() / len(cams))
+
+
+def _points_frame(xyz: np.ndarray, applied, cameras: list[Camera], ply_name: str) -> tuple[np.ndarray, str]:
+    """The point cloud in the frame of the transforms file's poses, and a note saying how it got there.
+
+    Assumption (nerfstudio's own reading of its format): `ns-process-data` writes the point cloud with
+    applied_transform already applied, in the frame of the poses, and nerfstudio's dataparser multiplies the points,
+    but not the poses, by applied_scale. So the points are taken as they are, times applied_scale. A point cloud
+    written in the original capture's frame instead (older nerfstudio, other tools) is recognised by the cameras:
+    when far more of its points are in view once applied_scale x applied_transform is applied to them, that is used.
+    """
+    M, scale, _ = applied
+    as_nerfstudio = (xyz.astype(np.float64) * scale).astype(np.float32)
+    original = (scale * (xyz.astype(np.float64) @ M[:3, :3].T + M[:3, 3])).astype(np.float32)
+    seen_ns, seen_orig = _visible(as_nerfstudio, cameras), _visible(original, cameras)
+    if seen_orig > max(2 * seen_ns, seen_ns + 0.25):
+        return original, (f"{ply_name} is in the original capture's frame (the cameras see {100 * seen_orig:.0f}% of "
+                          f"its points after applying applied_transform and applied_scale to them, {100 * seen_ns:.0f}% "
+                          "without): applied them to the points")
+    return as_nerfstudio, (f"{ply_name} is taken to be in the poses' frame, as ns-process-data writes it (the cameras "
+                           f"see {100 * seen_ns:.0f}% of its points)"
+                           + (f"; scaled by applied_scale {scale:g}, as nerfstudio does" if scale != 1 else ""))
+
+
+def _named_ply(root: Path, meta_path: Path, meta: dict) -> Path | None:
     """The point cloud the transforms file names (nerfstudio's ply_file_path, relative to the dataset), if any."""
-    name = _read_json(meta_path).get("ply_file_path")
+    name = meta.get("ply_file_path")
     if name is None:
         return None
     if not isinstance(name, str) or not name:

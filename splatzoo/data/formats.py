@@ -65,11 +65,22 @@ def detect_format(path) -> str:
                     f"For a folder of photos run `splatzoo sfm {path} --out DATA` first")
 
 
+def _takes(load, keyword: str) -> bool:
+    """Whether a format's reader accepts `keyword` (readers registered before it existed do not)."""
+    import inspect
+
+    try:
+        params = inspect.signature(load).parameters
+    except (TypeError, ValueError):
+        return False
+    return keyword in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
+
+
 DEFAULT_MAX_WIDTH = 1600  # pixels; wider photos are downscaled unless --resolution or --max-width is given
 
 
 def load_scene(path, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
-               background="auto", masks: bool = False, format: str | None = None) -> Scene:
+               background="auto", masks: bool = False, format: str | None = None, skip_missing: bool = False) -> Scene:
     """Load a dataset folder in any registered format (COLMAP, Blender/NeRF-synthetic, ...), detected automatically.
 
     resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width. With
@@ -80,12 +91,15 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     tuple in [0,1]; the scene says what it chose in `background_note`.
     masks: expose per-view masks (masks/<name> files, else the image alpha channel).
     format: a registered format name, to skip detection.
+    skip_missing: leave out the frames of a transforms file whose image is missing (scene.notes lists them) instead
+    of stopping with an error; formats whose reader has no such option say so in scene.notes.
     """
     from .background import choose_background, parse_background
 
     from .scene import scene_option_problem
 
-    for key, value in (("resolution", resolution), ("max_width", max_width), ("test_every", test_every)):
+    for key, value in (("resolution", resolution), ("max_width", max_width), ("test_every", test_every),
+                       ("skip_missing", skip_missing)):
         problem = scene_option_problem(key, value)  # before a folder is read: the same words for every format
         if problem:
             raise DataError(problem)
@@ -96,10 +110,13 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     elif not path.is_dir():
         detect_format(path)  # the missing-folder / not-a-folder messages
     capped = resolution is None and max_width is None  # large photos are downscaled unless asked otherwise
-    scene = FORMATS.get(format).load(path, resolution=resolution, max_width=DEFAULT_MAX_WIDTH if capped else max_width,
-                                     test_every=test_every,
-                                     background=option if isinstance(option, tuple) else (0.0, 0.0, 0.0),
-                                     masks=masks)
+    reader = FORMATS.get(format).load
+    skipping = _takes(reader, "skip_missing")
+    scene = reader(path, resolution=resolution, max_width=DEFAULT_MAX_WIDTH if capped else max_width,
+                   test_every=test_every, background=option if isinstance(option, tuple) else (0.0, 0.0, 0.0),
+                   masks=masks, **({"skip_missing": True} if skip_missing and skipping else {}))
+    if skip_missing and not skipping:
+        scene.notes.append(f"skip_missing does not apply to {format} datasets: their reader leaves out no frames")
     check_cameras(scene.views, path)
     if capped and scene.views:
         view = scene.views[0]

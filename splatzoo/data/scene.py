@@ -396,7 +396,7 @@ def camera_extent(cameras: list[Camera], points: torch.Tensor | None = None) -> 
 
 
 def scene_option_problem(key: str, value) -> str | None:
-    """Why `value` cannot be load_scene's option `key` (resolution, max_width or test_every), or None."""
+    """Why `value` cannot be load_scene's option `key` (resolution, max_width, test_every or skip_missing), or None."""
     import math
 
     whole = isinstance(value, int) and not isinstance(value, bool)
@@ -412,6 +412,8 @@ def scene_option_problem(key: str, value) -> str | None:
         except OverflowError:  # an integer too large for a float
             ok = False
         return None if ok else f"max_width={value!r:.60} must be a positive number of pixels"
+    if key == "skip_missing":
+        return None if isinstance(value, bool) else f"skip_missing={value!r:.60} must be true or false"
     if key == "test_every":
         if whole and (value == 0 or value >= 2):
             return None
