@@ -223,6 +223,8 @@ _BACKGROUND = typer.Option(None, "--background", help="colour behind the surfels
                            "colour each training step; needs images with alpha)")
 _WHITE = typer.Option(False, "--white-background", hidden=True, help="the same as --background white")
 _BACKEND = typer.Option("auto", "--backend", "-b", help="rasterizer: auto, reference, cpu or cuda")
+_SKIP_MISSING = typer.Option(False, "--skip-missing", help="leave out the frames of a transforms.json dataset whose "
+                             "image is missing (the count and names are printed) instead of stopping")
 
 
 _TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "num_primitives", "max_primitives",
@@ -281,6 +283,7 @@ def train_command(
                                 "it stays open after training until Ctrl-C"),
     viewer_port: int = typer.Option(8080, "--viewer-port", help="port of the live viewer"),
     viewer_host: str = typer.Option("127.0.0.1", "--viewer-host", help="address the live viewer listens on"),
+    skip_missing: bool = _SKIP_MISSING,
 ) -> None:
     """Train a model on a dataset. Model options follow the model name, e.g. `--model gabor --n-waves 8`.
 
@@ -303,8 +306,10 @@ def train_command(
                               snapshot_dir=Path(out) / "renders")
         typer.echo(f"live viewer: {watch.viewer.url}")
     try:
-        result = _train(ctx, data, model, inline_options, out, resume, overwrite, given, values,
-                        _scene_options(resolution, max_width, test_every, background, white_background), watch)
+        scene_options = _scene_options(resolution, max_width, test_every, background, white_background)
+        if skip_missing:
+            scene_options["skip_missing"] = True
+        result = _train(ctx, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch)
     except BaseException:
         if watch is not None:
             watch.viewer.stop()
@@ -331,7 +336,7 @@ def _train(ctx, data, model, inline_options, out, resume, overwrite, given, valu
                        {k: v for k, v in values.items() if k in given}, out, resume=True,
                        scene_options={k: v for k, v in scene_options.items()
                                       if {"resolution": {"resolution"}, "max_width": {"max_width"},
-                                          "test_every": {"test_every"},
+                                          "test_every": {"test_every"}, "skip_missing": {"skip_missing"},
                                           "background": {"background", "white_background"}}[k] & given},
                        watch=watch)
     else:
@@ -369,6 +374,7 @@ def eval_command(
                                         "against area-averaged images and the model's own full-size render"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="metrics file to write (default RUN/metrics.json); "
                                        "elsewhere, the run is only read (read-only media)", callback=_path_arg),
+    skip_missing: bool = _SKIP_MISSING,
 ) -> None:
     """Evaluate a trained run on its test views; prints a table and writes RUN/metrics.json."""
     from .evaluate import metrics_table, parse_scales, scales_table
@@ -376,7 +382,7 @@ def eval_command(
 
     scales = parse_scales(scale) if scale is not None else ()
     metrics = evaluate_run(run, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention,
-                           scales=scales, out=out)
+                           scales=scales, out=out, skip_missing=skip_missing)
     typer.echo(metrics_table(metrics))
     if scales:
         typer.echo(scales_table(metrics))
@@ -393,11 +399,13 @@ def render_command(
     backend: str = _BACKEND,
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="folder to write into (default RUN/renders); "
                                        "elsewhere, the run is only read (read-only media)", callback=_path_arg),
+    skip_missing: bool = _SKIP_MISSING,
 ) -> None:
     """Render a trained run's views to PNG (and an orbit video)."""
     from .runs import render_run
 
-    paths = render_run(run, split=split, video=video, backend=backend, frames=frames, out=out)
+    paths = render_run(run, split=split, video=video, backend=backend, frames=frames, out=out,
+                       skip_missing=skip_missing)
     typer.echo(f"wrote {len(paths)} files under {out if out is not None else Path(run) / 'renders'}")
 
 

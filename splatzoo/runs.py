@@ -282,8 +282,9 @@ class Run:
         model = load_model(self.model_path)
         return model.to(select_backend(backend).torch_device()) if backend is not None else model
 
-    def scene(self, record: dict | None = None):
-        """The run's dataset with its recorded load options."""
+    def scene(self, record: dict | None = None, *, skip_missing: bool = False):
+        """The run's dataset with its recorded load options (skip_missing: also leave out frames whose image has
+        gone missing since, whatever the run recorded)."""
         from .data import load_scene
 
         rec = record or self.record()
@@ -297,14 +298,18 @@ class Run:
                                 f"the run configuration {self.config_path} is damaged") from None
         if not found:
             raise SplatzooError(f"the dataset of {self.path} ({data}) no longer exists; restore it or move it back")
-        return load_scene(data, **_load_options(rec))
+        scene = load_scene(data, **{**_load_options(rec), **({"skip_missing": True} if skip_missing else {})})
+        for note in scene.notes:   # training prints every note; here only what changes the views scored
+            if "whose images are missing" in note:
+                print(f"splatzoo: {note}", file=sys.stderr, flush=True)
+        return scene
 
-    def load(self, backend: str | None = None):
+    def load(self, backend: str | None = None, *, skip_missing: bool = False):
         """(model, scene, record) of a finished run."""
         self.require_run()
         model = self.model(backend)
         record = self.record()
-        return model, self.scene(record), record
+        return model, self.scene(record, skip_missing=skip_missing), record
 
     def metrics(self) -> dict | None:
         if not self.metrics_path.exists():
@@ -999,16 +1004,17 @@ def load_run(run_dir, backend: str | None = None):
 
 
 def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None,
-                 lpips_convention: str | None = None, scales=(), out=None) -> dict:
+                 lpips_convention: str | None = None, scales=(), out=None, skip_missing: bool = False) -> dict:
     """Evaluate a finished run on its test views and write RUN/metrics.json (or the file `out`: the run is then only
     read, so it may be on read-only media); `scales` (each below 1) adds the metrics of smaller renders against
-    area-averaged images (evaluate_scales) as its "scales" entry."""
+    area-averaged images (evaluate_scales) as its "scales" entry. skip_missing: leave out views whose image has gone
+    missing (see load_scene)."""
     from .evaluate import LPIPS_CONVENTION, LPIPS_NET, evaluate, evaluate_scales
 
     run = Run(run_dir)
     target = Path(out) if out is not None else run.metrics_path
     with run.writing("splatzoo eval", target, "--out FILE.json"):
-        model, scene, record = run.load(backend)
+        model, scene, record = run.load(backend, skip_missing=skip_missing)
         old = run.metrics() if run.metrics_path.exists() else None
         metrics = evaluate(model, scene, backend=backend, train_seconds=(old or {}).get("train_seconds"),
                            iterations=record["train"].get("iterations"), lpips_net=lpips_net or LPIPS_NET,
@@ -1021,7 +1027,7 @@ def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None
 
 
 def render_run(run_dir, *, split: str = "test", video: bool = False, backend: str = "auto",
-               frames: int = 60, out=None) -> list[Path]:
+               frames: int = 60, out=None, skip_missing: bool = False) -> list[Path]:
     """Write the split's renders as PNG (and an orbit video, WebM) into RUN/renders (or the folder `out`: the run
     is then only read); returns the written paths."""
     from .evaluate import orbit_cameras, resolve_backend, save_test_renders, write_video
@@ -1031,7 +1037,7 @@ def render_run(run_dir, *, split: str = "test", video: bool = False, backend: st
     run = Run(run_dir)
     folder = Path(out) if out is not None else run.renders_dir
     with run.writing("splatzoo render", folder, "--out FOLDER"):
-        model, scene, _ = run.load(backend)
+        model, scene, _ = run.load(backend, skip_missing=skip_missing)
         paths = save_test_renders(model, scene, folder, backend=backend, split=split)
         if video:
             cams = orbit_cameras([v.camera for v in scene.train], frames)

@@ -246,3 +246,26 @@ def test_applied_transform_and_scale_put_points_and_poses_in_one_frame(tmp_path,
     said = " | ".join(scene.notes)
     assert "records applied_transform" in said and "applied_scale 0.5" in said
     assert ("original capture's frame" in said) == (ply_frame == "original")
+
+
+def test_cli_skip_missing_for_train_and_eval(tmp_path):
+    from typer.testing import CliRunner
+
+    from splatzoo.cli import app
+
+    root = write_capture(tmp_path / "d", "OPENCV", OPENCV, n=5)
+    (root / "images" / "f2.png").unlink()
+    runner = CliRunner()
+    run = tmp_path / "run"
+    base = ["train", str(root), "--model", "2dgs", "--iterations", "4", "--num-primitives", "50", "--backend", "cpu",
+            "--no-densify", "--test-every", "2", "--out", str(run)]
+    r = runner.invoke(app, base)
+    assert isinstance(r.exception, DataError) and "or pass --skip-missing" in str(r.exception)
+    r = runner.invoke(app, base + ["--skip-missing"])
+    assert r.exit_code == 0, r.output
+    assert "skipped 1 frame whose images are missing: images/f2.png" in r.output
+    assert json.loads((run / "config.json").read_text())["scene_options"]["skip_missing"] is True
+    (root / "images" / "f3.png").unlink()     # the run recorded skip_missing: eval leaves this one out too
+    r = runner.invoke(app, ["eval", str(run), "--backend", "cpu", "--lpips-net", "alex"])
+    assert r.exit_code == 0, r.output
+    assert "skipped 2 frames whose images are missing: images/f2.png, images/f3.png" in r.output
