@@ -65,7 +65,8 @@ def write_capture(root: Path, model: str = "OPENCV", terms: dict | None = None, 
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(10 * np.log10(1.0 / np.mean((a.astype(np.float64) - b) ** 2)))
+    mse = float(np.mean((a.astype(np.float64) - b) ** 2))
+    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
 
 
 def expected(view) -> np.ndarray:
@@ -269,3 +270,53 @@ def test_cli_skip_missing_for_train_and_eval(tmp_path):
     r = runner.invoke(app, ["eval", str(run), "--backend", "cpu", "--lpips-net", "alex"])
     assert r.exit_code == 0, r.output
     assert "skipped 2 frames whose images are missing: images/f2.png, images/f3.png" in r.output
+
+
+def write_both(colmap_root: Path, ns_root: Path, photos: list[np.ndarray], cams, distorted, points: np.ndarray,
+               colors: np.ndarray) -> None:
+    """One capture written twice: a COLMAP model (images/ + sparse/0 with the distorted camera) and a nerfstudio
+    transforms.json (same photos, fl_x.. and k1, k2, p1, p2, ply_file_path)."""
+    from splatzoo.data.colmap import write_model
+
+    for root in (colmap_root, ns_root):
+        (root / "images").mkdir(parents=True)
+        for cam, px in zip(cams, photos):
+            cv2.imwrite(str(root / "images" / cam.name), px[:, :, ::-1])
+    sparse = write_model(colmap_root / "sparse" / "0", cams, [c.name for c in cams], points, colors)
+    rec = import_pycolmap().Reconstruction(sparse)
+    for cam in rec.cameras.values():
+        cam.model, cam.params = distorted.model, list(distorted.params)
+    rec.write_binary(str(sparse))
+    fx, fy, cx, cy, k1, k2, p1, p2 = distorted.params
+    frames = [{"file_path": f"images/{c.name}", "transform_matrix": c2w_opengl(c)} for c in cams]
+    rgb = (np.clip(colors, 0, 1) * 255 + 0.5).astype(np.uint8)
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(points)}", "property float x", "property float y",
+             "property float z", "property uchar red", "property uchar green", "property uchar blue", "end_header"]
+    lines += [f"{p[0]:.8f} {p[1]:.8f} {p[2]:.8f} {c[0]} {c[1]} {c[2]}" for p, c in zip(points, rgb)]
+    (ns_root / "sparse_pc.ply").write_text("\n".join(lines) + "\n")
+    meta = {"camera_model": "OPENCV", "w": distorted.width, "h": distorted.height, "fl_x": fx, "fl_y": fy, "cx": cx,
+            "cy": cy, "k1": k1, "k2": k2, "p1": p1, "p2": p2, "frames": frames, "ply_file_path": "sparse_pc.ply"}
+    (ns_root / "transforms.json").write_text(json.dumps(meta, indent=1))
+
+
+def test_the_same_capture_loads_alike_from_colmap_and_from_transforms_json(tmp_path):
+    import dataclasses
+
+    cams = [dataclasses.replace(c, name=f"v{i}.png") for i, c in enumerate(synthetic_cameras("plain", 4, W, H))]
+    distorted = lens("OPENCV", OPENCV)
+    photos = [np.roll(photo(distorted), 7 * i, axis=1) for i in range(len(cams))]
+    rng = np.random.default_rng(1)
+    points, colors = rng.uniform(-0.3, 0.3, (50, 3)), rng.uniform(0, 1, (50, 3))
+    write_both(tmp_path / "colmap", tmp_path / "ns", photos, cams, distorted, points, colors)
+    a = load_scene(tmp_path / "colmap", test_every=0, background="black")
+    b = load_scene(tmp_path / "ns", test_every=0, background="black")
+    assert [v.name for v in a.train] == [Path(v.name).name for v in b.train]
+    for va, vb in zip(a.train, b.train):
+        ca, cb = va.camera, vb.camera
+        assert (ca.width, ca.height) == (cb.width, cb.height) and ca.width != W
+        for x, y in ((ca.K, cb.K), (ca.world_to_camera, cb.world_to_camera)):
+            assert torch.allclose(x.double(), y.double(), rtol=1e-4, atol=1e-4 * float(x.abs().max()))
+        # the same warp (pycolmap's undistorter): the same pixels, give or take rounding
+        assert (va.image().int() - vb.image().int()).abs().max() <= 1
+    assert torch.allclose(a.points, b.points, atol=1e-5) and torch.allclose(a.colors, b.colors, atol=1 / 255)
+    assert abs(a.extent - b.extent) < 1e-4 * a.extent
