@@ -33,7 +33,7 @@ def photo(cam) -> np.ndarray:
     u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
     xy = np.asarray(cam.cam_from_img(np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)))
     rgb = pattern(xy[:, 0], xy[:, 1]).reshape(cam.height, cam.width, 3)
-    return (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+    return (np.clip(np.nan_to_num(rgb), 0, 1) * 255 + 0.5).astype(np.uint8)   # NaN: a pixel no ray reaches
 
 
 def lens(model: str, terms: dict, w=W, h=H):
@@ -229,7 +229,8 @@ def test_applied_transform_and_scale_put_points_and_poses_in_one_frame(tmp_path,
         c2w_b[:3, :3] = T[:3, :3] @ c2w_a[:3, :3]
         c2w_b[:3, 3] = to_b(c2w_a[:3, 3])
         cv2.imwrite(str(root / "images" / f"f{i}.png"), np.full((H, W, 3), 128, np.uint8))
-        frames.append({"file_path": f"images/f{i}.png", "transform_matrix": (c2w_b @ np.diag([1.0, -1, -1, 1])).tolist()})
+        frames.append({"file_path": f"images/f{i}.png",
+                       "transform_matrix": (c2w_b @ np.diag([1.0, -1, -1, 1])).tolist()})
     # nerfstudio multiplies the points (not the poses) by applied_scale: a cloud in B is written at 1/s
     _ply(root / "sparse_pc.ply", to_b(pts_a) / s if ply_frame == "poses" else pts_a)
     meta = {"fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY, "w": W, "h": H, "frames": frames,
@@ -320,3 +321,5 @@ def test_the_same_capture_loads_alike_from_colmap_and_from_transforms_json(tmp_p
         assert (va.image().int() - vb.image().int()).abs().max() <= 1
     assert torch.allclose(a.points, b.points, atol=1e-5) and torch.allclose(a.colors, b.colors, atol=1 / 255)
     assert abs(a.extent - b.extent) < 1e-4 * a.extent
+    said = load_scene(tmp_path / "colmap", test_every=0, skip_missing=True).notes
+    assert "skip_missing does not apply to colmap datasets: their reader leaves out no frames" in said

@@ -571,8 +571,8 @@ def _notes(found: list[_Loaded]) -> list[str]:
             notes.append(f"{name}: skipped {len(f.skipped)} frame{'s' if len(f.skipped) > 1 else ''} whose images are "
                          f"missing: {listing}")
         if f.distorted:
-            notes.append(f"{name}: {f.distorted} frame(s) have lens distortion: training on undistorted copies of their "
-                         f"photos (pinhole cameras, as COLMAP's undistorter makes them) in {UNDISTORTED_DIR}/")
+            notes.append(f"{name}: {f.distorted} frame(s) have lens distortion: training on undistorted copies of "
+                         f"their photos (pinhole cameras, as COLMAP's undistorter makes them) in {UNDISTORTED_DIR}/")
         ignored = [k[:40] for k in f.ignored]
         ignored += [f"{k[:40]} (in {n} frame{'s' if n > 1 else ''})" for k, n in sorted(f.ignored_per_frame.items())]
         if ignored:
@@ -642,8 +642,8 @@ def _points_frame(xyz: np.ndarray, applied, cameras: list[Camera], ply_name: str
     seen_ns, seen_orig = _visible(as_nerfstudio, cameras), _visible(original, cameras)
     if seen_orig > max(2 * seen_ns, seen_ns + 0.25):
         return original, (f"{ply_name} is in the original capture's frame (the cameras see {100 * seen_orig:.0f}% of "
-                          f"its points after applying applied_transform and applied_scale to them, {100 * seen_ns:.0f}% "
-                          "without): applied them to the points")
+                          "its points after applying applied_transform and applied_scale to them, "
+                          f"{100 * seen_ns:.0f}% without): applied them to the points")
     return as_nerfstudio, (f"{ply_name} is taken to be in the poses' frame, as ns-process-data writes it (the cameras "
                            f"see {100 * seen_ns:.0f}% of its points)"
                            + (f"; scaled by applied_scale {scale:g}, as nerfstudio does" if scale != 1 else ""))
