@@ -5,10 +5,15 @@ OpenCV. Intrinsics come from camera_angle_x (and camera_angle_y), or from fl_x/f
 (instant-ngp / nerfstudio style). RGBA images are composited over the scene background.
 
 Initial points: the PLY named by the transforms file's ply_file_path (nerfstudio), else points3d.ply in the
-dataset folder if present (x, y, z and optional red, green, blue); otherwise, as a stated fallback, RANDOM_POINTS
-points with random colours (seeded, so loading twice gives the same cloud) drawn uniformly in a cube around the point
-the cameras look at, of half-size RANDOM_BOX_PER_DISTANCE x their mean distance to it: [-1.3, 1.3]^3 for the
-NeRF-synthetic scenes (cameras 4.03 from the origin), and the same proportion at any other scale.
+dataset folder if present (x, y, z and optional red, green, blue). Without one (init_points="auto"), points are
+triangulated from the training images and their known poses (data/triangulate.py: SIFT matches, poses held fixed;
+cached in DATA/triangulated_points.npz), except for NeRF-synthetic-style objects (camera_angle_x, no fl_x, RGBA
+images), which start from random points as the 3DGS protocol does. Random points are also the stated fallback when
+triangulation fails or finds fewer than MIN_TRIANGULATED points (init_points="random" asks for them, "triangulate"
+triangulates NeRF-synthetic-style data too): RANDOM_POINTS points with random colours (seeded, so loading twice
+gives the same cloud) drawn uniformly in a cube around the point the cameras look at, of half-size
+RANDOM_BOX_PER_DISTANCE x their mean distance to it: [-1.3, 1.3]^3 for the NeRF-synthetic scenes (cameras 4.03
+from the origin), and the same proportion at any other scale. scene.notes says which start was taken and why.
 
 nerfstudio / instant-ngp additions, all read at the top level or per frame (a frame's value wins):
 - lens distortion: camera_model (nerfstudio: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV,
@@ -37,6 +42,8 @@ from .scene import (DatasetFormat, Scene, View, camera_extent, check_cameras, fi
                     mesh_path_of, read_image, read_mask, scale_camera, split_views, target_scale)
 
 RANDOM_POINTS = 10_000
+MIN_TRIANGULATED = 100     # fewer triangulated points than this: random points instead
+INIT_POINTS = ("auto", "triangulate", "random")
 RANDOM_BOX_PER_DISTANCE = 1.3 / 4.0311  # NeRF-synthetic's [-1.3, 1.3]^3 box for its cameras 4.03 from the origin
 _OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -510,11 +517,15 @@ def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def load_blender(root, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
-                 background=(0.0, 0.0, 0.0), masks: bool = False, skip_missing: bool = False) -> Scene:
+                 background=(0.0, 0.0, 0.0), masks: bool = False, skip_missing: bool = False,
+                 init_points: str = "auto") -> Scene:
     """Read a Blender/NeRF-synthetic folder. With transforms_train.json the split comes from the files
     (transforms_test.json is the test set; test_every is ignored); a single transforms.json is split by
     test_every. skip_missing: leave out frames whose image does not exist (scene.notes lists them) instead of
-    stopping with an error. See the module docstring for lens distortion and how initial points are chosen."""
+    stopping with an error. init_points (used only without a point cloud): "auto", "triangulate" or "random".
+    See the module docstring for lens distortion and how initial points are chosen."""
+    if init_points not in INIT_POINTS:
+        raise DataError(f"init_points={init_points!r:.60}: choose one of {', '.join(INIT_POINTS)}")
     root = Path(root)
     train_file, test_file = root / "transforms_train.json", root / "transforms_test.json"
     options = (background, masks, resolution, max_width, skip_missing)
@@ -550,7 +561,7 @@ def load_blender(root, *, resolution: int | None = None, max_width: int | None =
             xyz, note = _points_frame(xyz, applied, [v.camera for v in train + test], ply.name)
             notes.append(note)
     else:
-        xyz, rgb, note = _random_points([v.camera for v in train + test])
+        xyz, rgb, note = _initial_points(root, train, [v.camera for v in train + test], meta, init_points)
         notes.append(note)
     if (root / "dataparser_transforms.json").is_file():
         notes.append("dataparser_transforms.json (the frame a nerfstudio model was trained in) is not applied: "
@@ -667,7 +678,49 @@ def _named_ply(root: Path, meta_path: Path, meta: dict) -> Path | None:
     return path
 
 
-def _random_points(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, str]:
+def _nerf_synthetic_style(meta: dict, train: list[View]) -> bool:
+    """A NeRF-synthetic-style object dataset: a field of view (camera_angle_x) rather than fl_x, and transparent
+    (RGBA) images."""
+    frames = [f for f in meta.get("frames", []) if isinstance(f, dict)]
+    has_fl = meta.get("fl_x") is not None or any(f.get("fl_x") is not None for f in frames)
+    if has_fl or meta.get("camera_angle_x") is None or not train:
+        return False
+    v = train[0]
+    if v.pixels is not None:
+        return v.pixels.shape[2] == 4
+    return v.path is not None and image_has_alpha(v.path)
+
+
+def _initial_points(root: Path, train: list[View], cameras: list[Camera], meta: dict,
+                    init_points: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """Initial points of a dataset without a point cloud (see the module docstring): triangulated from the known poses,
+    else random points with a note saying why."""
+    import sys
+
+    from .triangulate import select_views, triangulate_points
+
+    if init_points == "random":
+        return _random_points(cameras, "no point cloud and init_points='random'")
+    if init_points == "auto" and _nerf_synthetic_style(meta, train):
+        return _random_points(cameras, "no point cloud (points3d.ply or the transforms file's ply_file_path); a "
+                                       "NeRF-synthetic-style object (camera_angle_x, transparent images) starts as the "
+                                       "3DGS protocol does (init_points='triangulate' triangulates instead)")
+    if len(train) < 2:
+        return _random_points(cameras, f"no point cloud, and {len(train)} training image is too few to triangulate")
+    try:
+        xyz, rgb = triangulate_points(train, cache_dir=root,
+                                      progress=lambda msg: print(f"splatzoo: {msg}", file=sys.stderr, flush=True))
+    except DataError as e:
+        return _random_points(cameras, f"initial points: {e}")
+    if len(xyz) < MIN_TRIANGULATED:
+        return _random_points(cameras, f"initial points: triangulation found only {len(xyz)} points (fewer than "
+                                       f"{MIN_TRIANGULATED}; the images may lack texture or overlap)")
+    return xyz, rgb, (f"initial points: {len(xyz)} triangulated from the known poses "
+                      f"({len(select_views(train))} images)")
+
+
+def _random_points(cameras: list[Camera], why: str = "no point cloud (points3d.ply or the transforms file's "
+                                                         "ply_file_path)") -> tuple[np.ndarray, np.ndarray, str]:
     """RANDOM_POINTS seeded random points and colours in a cube around what the cameras look at, sized to them."""
     from ..geometry import look_at_point
 
@@ -678,9 +731,8 @@ def _random_points(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, str]:
     xyz = ((g.random((RANDOM_POINTS, 3)) * 2 - 1) * half + centre.numpy()).astype(np.float32)
     rgb = g.random((RANDOM_POINTS, 3)).astype(np.float32)
     where = ", ".join(f"{x:.3g}" for x in centre.tolist())
-    return xyz, rgb, (f"no point cloud (points3d.ply or the transforms file's ply_file_path): starting from "
-                      f"{RANDOM_POINTS} random points in a cube of half-size {half:.3g} around ({where}), what the "
-                      "cameras look at")
+    return xyz, rgb, (f"{why}: starting from {RANDOM_POINTS} random points in a cube of half-size {half:.3g} around "
+                      f"({where}), what the cameras look at")
 
 
 def is_blender(root: Path) -> bool:
