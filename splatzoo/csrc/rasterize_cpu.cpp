@@ -112,8 +112,9 @@ struct LaneAcc {
 
 // The anti-aliased pairs' geometry over rows r0..r1 of one surfel: geom_backward_filtered at every pixel from the
 // values eval_rows kept and the cotangents the scalar pass left (0 where the pair did not contribute), summed per
-// slot into t[0, GEOM_SLOTS). Each row is one vectorised loop; the lanes are summed once per call.
-template <class S>
+// slot into t[0, GEOM_SLOTS). Each row is one vectorised loop; the lanes are summed once per call. BETA: the
+// surfel's falloff is the Beta kernel.
+template <bool BETA, class S>
 __attribute__((noinline)) void geom_rows_filtered(const Settings& settings, const Geom<S>& g, const S* xs, S y0,
                                                   int r0, int r1, const TileScratch<S>& sc, S* t) {
     const Geom<S> gl = g;
@@ -151,7 +152,7 @@ __attribute__((noinline)) void geom_rows_filtered(const Settings& settings, cons
             e.p11 = sc.p11[p];
             e.idet = sc.idet[p];
             LaneAcc<S> acc{lanes, c};
-            geom_backward_filtered(st, gl, e, sc.v_alpha[p], sc.v_z[p], sc.v_u[p], sc.v_v[p], acc);
+            geom_backward_filtered<BETA>(st, gl, e, sc.v_alpha[p], sc.v_z[p], sc.v_u[p], sc.v_v[p], acc);
         }
     }
     for (int i = 0; i < GEOM_SLOTS; ++i) {
@@ -254,12 +255,16 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
                     sc.v_u[p] = v.u;
                     sc.v_v[p] = v.v;
                 } else {
-                    geom_backward(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc);
+                    q.g.s > S(0) ? geom_backward<true>(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc)
+                                 : geom_backward<false>(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc);
                 }
             }
         if constexpr (FILTERED) {
             alignas(64) S t[GEOM_SLOTS];
-            geom_rows_filtered(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
+            if (q.g.s > S(0))
+                geom_rows_filtered<true>(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
+            else
+                geom_rows_filtered<false>(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
             for (int j = 0; j < GEOM_SLOTS; ++j)
                 if (filtered_geom_slot(j)) acc(j, t[j]);
             for (int k = 0; k < q.sf.K; ++k)  // d(gain a)/da = gain

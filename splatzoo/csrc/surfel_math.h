@@ -588,8 +588,13 @@ SZ_HD S falloff(S rho, S s) {
 // d ln f / d rho and d ln f / d s where f > 0: -1/(2w) and -ln(w)/s^2 - rho/(2 s w), w = 1 - x, x = s rho/2. The
 // second is a series where x is small (its two terms cancel): -(rho/2)^2 (1/2 + 2x/3 + 3x^2/4 + 4x^3/5), which at
 // s = 0 is -rho^2/8, the Gaussian's own: a surfel can move from the Gaussian into the Beta family.
-template <class S>
+template <bool BETA, class S>
 SZ_HD void falloff_dlog(S rho, S s, S& d_rho, S& d_s) {
+    if constexpr (!BETA) {  // s = 0: the series' first term (the Gaussian's pairs pay no more than that)
+        d_rho = S(-0.5);
+        d_s = S(-0.125) * rho * rho;
+        return;
+    }
     const S x = rmul(rmul(S(0.5), s), rho), h = S(0.5) * rho;
     const S w = S(1) - x;
     const S ws = w > S(1e-30) ? w : S(1e-30);
@@ -868,12 +873,12 @@ SZ_HD void pixel_bwd_init(PixelBwd<S>& p, S Tfinal, const S* tot, int last, int 
 // d(alpha, z, u, v) -> surfel slots (opacity, centre, centre depth, and c = h_x x h_y through u, v).
 // Every slot is accumulated on every call (zero where it does not apply), in a fixed order, so a caller may sum
 // each slot across threads (the CUDA warp reduction) with every thread taking part.
-template <class S, class Acc>
+template <bool BETA, class S, class Acc>
 SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S v_alpha, S v_z, S v_u, S v_v,
                          Acc& acc) {
     const bool clamped = e.raw > S(st.alpha_max);  // torch.clamp passes the gradient only where input <= max
     S d_rho, d_s;
-    falloff_dlog(e.rho, g.s, d_rho, d_s);
+    falloff_dlog<BETA>(e.rho, g.s, d_rho, d_s);
     const S v_lnf = clamped ? S(0) : v_alpha * e.raw;  // dL/d ln f
     const S v_rho = v_lnf * d_rho;
     acc(G_O, clamped ? S(0) : v_alpha * e.ex);
@@ -902,14 +907,14 @@ SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>
 // geom_backward of an anti-aliased pair (eval_pair_filtered): d(alpha, z, colour centre P x) -> the slots, through
 // P = (I + S)^-1, det(I + S), S = f J J^T, J = d(u, v)/d(pixel) and the hit x = (c0, c1) / c2. P's off-diagonal is
 // one parameter (it appears twice in the symmetric matrix).
-template <class S, class Acc>
+template <bool BETA, class S, class Acc>
 SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S v_alpha, S v_z,
                                   S v_mu, S v_mv, Acc& acc) {
     const bool clamped = e.raw > S(st.alpha_max);
     const S v_raw = clamped ? S(0) : v_alpha;
     acc(G_O, v_raw * e.ex);
     S d_q, d_s;
-    falloff_dlog(e.rho, g.s, d_q, d_s);
+    falloff_dlog<BETA>(e.rho, g.s, d_q, d_s);
     const S v_q = v_raw * e.raw * d_q;  // raw = o det^-1/2 f(q)
     acc(G_S, v_raw * e.raw * d_s);
     // z = m3 . (P x, 1)
@@ -1052,9 +1057,11 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
     const PairCotangents<S> v =
         blend_backward_colour<KMAX>(st, p, e, n, base, wv, wp, wa, K, pos, acc, filtered ? g.blur : nullptr);
     if (filtered)
-        geom_backward_filtered(st, g, e, v.alpha, v.z, v.u, v.v, acc);
+        g.s > S(0) ? geom_backward_filtered<true>(st, g, e, v.alpha, v.z, v.u, v.v, acc)
+                   : geom_backward_filtered<false>(st, g, e, v.alpha, v.z, v.u, v.v, acc);
     else  // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
-        geom_backward(st, g, e, v.alpha, v.z, v.u, v.v, acc);
+        g.s > S(0) ? geom_backward<true>(st, g, e, v.alpha, v.z, v.u, v.v, acc)
+                   : geom_backward<false>(st, g, e, v.alpha, v.z, v.u, v.v, acc);
 }
 
 // A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
