@@ -457,16 +457,19 @@ def compare_command(
     test_every: Optional[int] = _TEST_EVERY,
     background: Optional[str] = _BACKGROUND,
     white_background: bool = _WHITE,
+    skip_missing: bool = _SKIP_MISSING,
 ) -> None:
     """Train several models with identical data, initial points and budget; write compare.json, report.md,
     compare.png and convergence.png. `splatzoo compare gabor baseline-a baseline-b baseline-c 2dgs` is the
     paper's ablation."""
     from .compare import compare
 
+    scene_options = _scene_options(resolution, max_width, test_every, background, white_background)
+    if skip_missing:
+        scene_options["skip_missing"] = True
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
             seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite, equal_bytes=equal_bytes,
-            antialias=antialias, random_downscale=random_downscale,
-            scene_options=_scene_options(resolution, max_width, test_every, background, white_background))
+            antialias=antialias, random_downscale=random_downscale, scene_options=scene_options)
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")
 

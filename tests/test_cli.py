@@ -198,3 +198,21 @@ def test_bad_render_and_eval_arguments_are_named(tiny_run, tmp_path):
     out = subprocess.run([sys.executable, "-m", "splatzoo.cli", "eval", str(model)], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 2 and "is a model file, not a run folder" in out.stderr and "load_ply" in out.stderr
+
+
+def test_compare_passes_skip_missing_to_the_scene(monkeypatch, tmp_path):
+    """`compare --skip-missing` loads a transforms.json dataset whose export dropped some photos, as train does."""
+    import splatzoo.compare
+
+    seen = {}
+
+    def fake_compare(models, data, out, **kw):
+        seen.update(kw["scene_options"])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "report.md").write_text("report")
+
+    monkeypatch.setattr(splatzoo.compare, "compare", fake_compare)
+    r = runner.invoke(app, ["compare", "2dgs", "--data", str(tmp_path), "--out", str(tmp_path / "cmp"), "-r", "4",
+                            "--skip-missing"])
+    assert r.exit_code == 0, r.output
+    assert seen == {"resolution": 4, "skip_missing": True}
