@@ -111,15 +111,19 @@ void set_field_gradients(sz::GradArgs<S>& g, TensorMap& v) {
 }
 
 // The frame: binning, per-pixel saved state and, given `out` (the forward), the outputs to write. The backward
-// passes none: it reads the saved state and the depth output only.
+// passes none: it reads the saved state and the depth output only. image_only: `out` holds rgb and alpha and there
+// is no per-pixel state (those pointers stay null).
 template <class S>
-sz::FrameArgs<S> frame_args(const TensorMap& st, const TensorMap* out) {
+sz::FrameArgs<S> frame_args(const TensorMap& st, const TensorMap* out, bool image_only = false) {
     auto p = [&](const TensorMap& m, const char* k) { return need(m, k).data_ptr<S>(); };
     auto o = [&](const char* k) { return out ? p(*out, k) : nullptr; };
+    auto full = [&](const TensorMap& m, const char* k) { return image_only ? nullptr : p(m, k); };
     auto i = [&](const char* k) { return need(st, k).data_ptr<int>(); };
+    auto saved = [&](const char* k) { return image_only ? nullptr : i(k); };
     return {p(st, "geom"), i("bounds"), i("tile_start"), i("tile_list"),
-            o("rgb"), o("alpha"), out ? p(*out, "depth") : p(st, "depth"), o("median_depth"), o("normal"),
-            o("distortion"), p(st, "T_final"), p(st, "totals"), i("last"), i("median_index"), false};
+            o("rgb"), o("alpha"), out ? full(*out, "depth") : p(st, "depth"), out ? full(*out, "median_depth") : nullptr,
+            out ? full(*out, "normal") : nullptr, out ? full(*out, "distortion") : nullptr, full(st, "T_final"),
+            full(st, "totals"), saved("last"), saved("median_index"), image_only};
 }
 
 // The per-surfel fields in table order (surfel_fields.h), checked against the table: one dtype and device, shape
@@ -251,41 +255,27 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector
         }
     });
 
-    // 4. the tile loop; a render to look at writes rgb and alpha only and keeps no state
-    if (image_only) {
-        TensorMap out = {{"rgb", at::empty({H, W, 3}, f)}, {"alpha", at::empty({H, W}, f)}};
-        AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_image", [&] {
-            const auto s = surfel_args<scalar_t>(st, state, W, H);
-            sz::FrameArgs<scalar_t> fr{};
-            fr.geom = state["geom"].data_ptr<scalar_t>();
-            fr.bounds = state["bounds"].data_ptr<int>();
-            fr.tile_start = state["tile_start"].data_ptr<int>();
-            fr.tile_list = state["tile_list"].data_ptr<int>();
-            fr.rgb = out["rgb"].data_ptr<scalar_t>();
-            fr.alpha = out["alpha"].data_ptr<scalar_t>();
-            fr.image_only = true;
-            if (dev == Device::Cpu)
-                sz::cpu_forward<scalar_t>(s, fr, threads);
-            else
-                SZ_KERNELS(dev, forward<scalar_t>, s, fr, stream);
-        });
-        return {out, TensorMap{}};
+    // 4. the tile loop; a render to look at (image_only) writes rgb and alpha only and keeps no per-pixel state
+    TensorMap out = {{"rgb", at::empty({H, W, 3}, f)}, {"alpha", at::empty({H, W}, f)}};
+    if (!image_only) {
+        out["depth"] = at::empty({H, W}, f);
+        out["median_depth"] = at::empty({H, W}, f);
+        out["normal"] = at::empty({H, W, 3}, f);
+        out["distortion"] = at::empty({H, W}, f);
+        state["T_final"] = at::empty({H, W}, f);
+        state["totals"] = at::empty({H, W, 3}, f);
+        state["last"] = at::empty({H, W}, i32);
+        state["median_index"] = at::empty({H, W}, i32);
     }
-    TensorMap out = {{"rgb", at::empty({H, W, 3}, f)}, {"alpha", at::empty({H, W}, f)}, {"depth", at::empty({H, W}, f)},
-                     {"median_depth", at::empty({H, W}, f)}, {"normal", at::empty({H, W, 3}, f)},
-                     {"distortion", at::empty({H, W}, f)}};
-    state["T_final"] = at::empty({H, W}, f);
-    state["totals"] = at::empty({H, W, 3}, f);
-    state["last"] = at::empty({H, W}, i32);
-    state["median_index"] = at::empty({H, W}, i32);
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_forward", [&] {
         const auto s = surfel_args<scalar_t>(st, state, W, H);
-        const auto fr = frame_args<scalar_t>(state, &out);
+        const auto fr = frame_args<scalar_t>(state, &out, image_only);
         if (dev == Device::Cpu)
             sz::cpu_forward<scalar_t>(s, fr, threads);
         else
             SZ_KERNELS(dev, forward<scalar_t>, s, fr, stream);
     });
+    if (image_only) return {out, TensorMap{}};
     state["depth"] = out["depth"];  // the backward divides by the accumulated alpha through it
     return {out, state};
 }
