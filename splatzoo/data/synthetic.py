@@ -298,8 +298,6 @@ def synthetic_cameras(name: str, views: int = 48, width: int = 256, height: int 
     rng = np.random.default_rng(seed)
     golden = math.pi * (3 - math.sqrt(5))
     target = np.asarray(spec.target, dtype=np.float64)
-    f = 0.5 * min(width, height) / math.tan(math.radians(spec.fov_deg) / 2)
-    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=torch.float64)
     az0 = rng.uniform(0, 2 * math.pi)
     cams = []
     for i in range(views):
@@ -308,16 +306,25 @@ def synthetic_cameras(name: str, views: int = 48, width: int = 256, height: int 
         az = az0 + i * golden + rng.uniform(-0.05, 0.05)
         dist = spec.distance * (1 + rng.uniform(-0.06, 0.06))
         eye = target + dist * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-        fwd = (target - eye) / np.linalg.norm(target - eye)
-        right = np.cross(fwd, [0.0, 0.0, 1.0])          # world +z shows as up in every image
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        R = np.stack([right, down, fwd])
-        w2c = np.eye(4)
-        w2c[:3, :3] = R
-        w2c[:3, 3] = -R @ eye
-        cams.append(Camera(torch.from_numpy(w2c), K.clone(), width, height, f"view_{i:03d}.png"))
+        cams.append(scene_camera(spec, eye, width, height, f"view_{i:03d}.png"))
     return cams
+
+
+def scene_camera(spec, eye, width: int, height: int, name: str = "") -> Camera:
+    """A camera of a synthetic scene at `eye` looking at its target with its field of view (over the shorter side),
+    float64; world +z shows as up in the image."""
+    target = np.asarray(spec.target, dtype=np.float64)
+    f = 0.5 * min(width, height) / math.tan(math.radians(spec.fov_deg) / 2)
+    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=torch.float64)
+    fwd = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    R = np.stack([right, down, fwd])
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ eye
+    return Camera(torch.from_numpy(w2c), K, width, height, name)
 
 
 # --- rendering -------------------------------------------------------------------------------------------

@@ -19,7 +19,6 @@ import itertools
 import math
 import os
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ from ..errors import DataError
 from ..types import Camera
 from .colmap import import_pycolmap, quiet_colmap
 from .scene import View, scale_camera
+from .sfm import _image_ids, _say, match_pairs
 
 MAX_WIDTH = 800            # images are downscaled to at most this width for speed
 MAX_IMAGES = 200           # at most this many views (evenly spread over the list) are used
@@ -39,14 +39,6 @@ MIN_TRACK = 3              # a point must be seen in at least this many images
 MAX_ERROR_PX = 2.0         # and reproject within this many pixels (at the working resolution) on average
 CACHE_NAME = "triangulated_points.npz"
 _VERSION = 1               # part of the cache stamp: bump when the method changes what it returns
-
-
-def _say(progress):
-    if callable(progress):
-        return progress
-    if progress:
-        return lambda msg: print(msg, file=sys.stderr, flush=True)
-    return lambda msg: None
 
 
 def select_views(views: list[View], max_images: int = MAX_IMAGES) -> list[View]:
@@ -202,15 +194,6 @@ def _reconstruction(db_path: Path, cams: list[Camera], names: list[str]):
     return rec
 
 
-def _image_ids(db_path: Path) -> dict[str, int]:
-    pycolmap = import_pycolmap()
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        return {im.name: im.image_id for im in db.read_all_images()}
-    finally:
-        db.close()
-
-
 def _filtered(rec) -> tuple[np.ndarray, np.ndarray]:
     pts, cols = [], []
     for p in rec.points3D.values():
@@ -272,7 +255,6 @@ def triangulate_points(views: list[View], *, max_images: int = MAX_IMAGES, max_w
                 by_index = {index[n]: i for n, i in ids.items()}
                 id_pairs = [(by_index[a], by_index[b]) for a, b in pairs if a in by_index and b in by_index]
                 say(f"      [2/3] matching {len(id_pairs)} image pairs ({how})")
-                from .sfm import match_pairs
 
                 match_pairs(db, id_pairs, work / "match", num_threads=num_threads)
                 say("      [3/3] triangulating with the poses held fixed")

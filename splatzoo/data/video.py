@@ -269,17 +269,12 @@ def orbit_cameras(name: str, frames: int, width: int, height: int, *, turns: flo
                   elevation=(22.0, 42.0)):
     """Cameras of a synthetic scene along a smooth closed orbit, in order (as frames of a video walking around
     it): azimuth steps evenly through `turns` turns, elevation swings once between the two values (degrees)."""
-    import torch
-
-    from ..types import Camera
-    from .synthetic import get_spec
+    from .synthetic import get_spec, scene_camera
 
     spec = get_spec(name)
     if frames < 2:
         raise DataError(f"frames={frames}: an orbit needs at least 2")
     target = np.asarray(spec.target, dtype=np.float64)
-    f = 0.5 * min(width, height) / math.tan(math.radians(spec.fov_deg) / 2)
-    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=torch.float64)
     lo, hi = elevation
     cams = []
     for i in range(frames):
@@ -288,14 +283,7 @@ def orbit_cameras(name: str, frames: int, width: int, height: int, *, turns: flo
         el = math.radians((lo + hi) / 2 + (hi - lo) / 2 * math.sin(2 * math.pi * t))
         eye = target + spec.distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
                                                  math.sin(el)])
-        fwd = (target - eye) / np.linalg.norm(target - eye)
-        right = np.cross(fwd, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        w2c = np.eye(4)
-        w2c[:3, :3] = np.stack([right, down, fwd])
-        w2c[:3, 3] = -w2c[:3, :3] @ eye
-        cams.append(Camera(torch.from_numpy(w2c), K.clone(), width, height, f"frame_{i + 1:05d}.png"))
+        cams.append(scene_camera(spec, eye, width, height, f"frame_{i + 1:05d}.png"))
     return cams
 
 
