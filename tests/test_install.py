@@ -68,7 +68,7 @@ def test_the_system_python_gets_a_venv_in_the_checkout(dry_run):
     assert [lines[i].split("would run: ")[1].split(" -m pip")[0] for i in pip] == [f"{venv}/bin/python"] * 3
     # torch, pinned, comes before the package that asks for it
     assert "torch==2.13.0" in lines[pip[0]] and "-e .[mesh,viewer,dev]" in lines[pip[1]]
-    assert [f"[{i}/5]" for i in range(1, 6)] == [line.split()[0] for line in lines if line.startswith("[")]
+    assert [f"[{i}/6]" for i in range(1, 7)] == [line.split()[0] for line in lines if line.startswith("[")]
     assert "source .venv/bin/activate" not in r.stdout  # a dry run makes nothing to activate
 
 
@@ -91,7 +91,7 @@ def test_an_active_venv_or_conda_env_is_installed_into(dry_run, kind, facts):
 
 def test_no_venv_installs_into_the_interpreter_unless_it_is_externally_managed(dry_run):
     r = dry_run("--no-venv")
-    assert r.returncode == 1 and "externally managed (PEP 668)" in r.stderr and "[1/5]" not in r.stdout
+    assert r.returncode == 1 and "externally managed (PEP 668)" in r.stderr and "[1/6]" not in r.stdout
     r = dry_run("--no-venv", managed=0, base_prefix="/opt/python")
     assert r.returncode == 0, r.stderr
     assert "goes into the interpreter itself" in r.stdout and "-m venv" not in r.stdout
