@@ -59,20 +59,32 @@ def fps_report(model, cameras: list[Camera], background, backend: str, *, height
     return rows
 
 
+OBJECT_MASK = 0.99  # mask values from here up are the object's interior (edges are partly backdrop)
+
+
 @torch.no_grad()
 def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None = None,
              iterations: int | None = None, lpips_net: str = LPIPS_NET, lpips_convention: str = LPIPS_CONVENTION,
              split: str = "test") -> dict:
     """metrics.json content: psnr, ssim, lpips (means over the split's views), fps, train_seconds,
-    num_primitives, size_bytes, iterations, model, backend, and the metric conventions used."""
+    num_primitives, size_bytes, iterations, model, backend, and the metric conventions used; object_alpha, the mean
+    rendered alpha over the pixels inside the views' masks (None without masks): how opaque the object's surfaces
+    are, which a viewer with another background shows."""
     from .metrics import lpips, psnr, ssim
 
     backend = resolve_backend(backend, _device(model))
     views = scene.test if split == "test" and scene.test else scene.train
     used = "test" if views is scene.test else "train"
     ps, ss, ls = [], [], []
+    covered, inside = 0.0, 0  # rendered alpha summed over the object's pixels, where the views have masks
     for v in views:
-        pred, gt = model.render(v.camera, background=scene.background, backend=backend, image_only=True).image(), v.image_float()
+        out = model.render(v.camera, background=scene.background, backend=backend, image_only=True)
+        pred, gt = out.image(), v.image_float()
+        mask = v.mask() if v.use_mask else None
+        if mask is not None:
+            on = mask >= OBJECT_MASK
+            covered += float(out.alpha.detach().cpu()[on].double().sum())
+            inside += int(on.sum())
         ps.append(psnr(pred, gt))
         ss.append(ssim(pred, gt))
         ls.append(lpips(pred, gt, net=lpips_net, convention=lpips_convention) if min(gt.shape[:2]) >= 32 else float("nan"))
@@ -83,6 +95,7 @@ def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None
         "fps": measure_fps(model, [v.camera for v in views], scene.background, backend),
         "train_seconds": train_seconds, "num_primitives": model.num_primitives, "size_bytes": model.size_bytes(),
         "iterations": iterations, "model": model.name, "backend": backend, "split": used, "views": len(views),
+        "object_alpha": covered / inside if inside else None,
         **(model.summary() if hasattr(model, "summary") else {}),
         "resolution": [views[0].camera.width, views[0].camera.height] if views else None,
         "conventions": {"psnr": "mean of per-image PSNR", "ssim": "3DGS: 11x11 Gaussian, sigma 1.5, zero padding",
@@ -163,6 +176,8 @@ def metrics_table(m: dict) -> str:
             ("PSNR", f"{num('psnr', '.2f')} dB"), ("SSIM", num("ssim", ".4f")),
             ("LPIPS", f"{num('lpips', '.4f')} ({m.get('conventions', {}).get('lpips', '')})"),
             ("render", f"{num('fps', '.1f')} FPS ({m.get('backend', '-')} backend)"),
+            *([("opacity", f"{m['object_alpha']:.3f} mean alpha on the object (inside the masks)")]
+              if m.get("object_alpha") is not None else []),
             ("training", f"{num('train_seconds', '.0f')} s, {m.get('iterations', '-')} iterations")]
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

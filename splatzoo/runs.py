@@ -156,7 +156,8 @@ def make_record(scene, scene_options: dict | None, model: str, model_config, cfg
             "train": _plain(dataclasses.asdict(cfg)),
             "scene": {"name": scene.name, "train_views": len(scene.train), "test_views": len(scene.test),
                       "extent": scene.extent, "background": list(scene.background),
-                      "background_note": getattr(scene, "background_note", "")}}
+                      "background_note": getattr(scene, "background_note", ""),
+                      "random_background": bool(getattr(scene, "random_background", False))}}
 
 
 def _plain(x):
@@ -620,7 +621,11 @@ def _load_options(record: dict) -> dict:
     opts = dict(record.get("scene_options", {}))
     if isinstance(opts.get("background"), list):
         opts["background"] = tuple(opts["background"])
-    return {k: v for k, v in opts.items() if v is not None}
+    opts = {k: v for k, v in opts.items() if v is not None}
+    scene = record.get("scene")
+    if isinstance(scene, dict) and "random_background" not in scene:
+        opts["masks"] = False  # a run from before masks taught opaque surfaces: resumed and scored as it was made
+    return opts
 
 
 def _check_adam_groups(optimizer) -> None:

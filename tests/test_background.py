@@ -30,7 +30,17 @@ def test_parse():
             parse_background(bad)
 
 
-def test_auto_finds_a_white_backdrop(white_scene, tmp_path):
+@pytest.fixture(scope="module")
+def white_scene_without_masks(white_scene, tmp_path_factory):
+    import shutil
+
+    copy = tmp_path_factory.mktemp("white-unmasked") / "data"
+    shutil.copytree(white_scene, copy, ignore=shutil.ignore_patterns("masks"))
+    return copy
+
+
+def test_auto_finds_a_white_backdrop(white_scene_without_masks, tmp_path):
+    white_scene = white_scene_without_masks
     scene = load_scene(white_scene)
     assert scene.background == (1.0, 1.0, 1.0) and not scene.random_background
     assert "white" in scene.background_note and all(v.background == (1.0, 1.0, 1.0) for v in scene.views)
@@ -42,8 +52,51 @@ def test_auto_finds_a_white_backdrop(white_scene, tmp_path):
     grey = make_synthetic_scene("plain", tmp_path / "grey", views=6, width=40, height=40,
                                 background=(0.5, 0.25, 0.75))
     assert np.allclose(load_scene(grey).background, (0.5, 0.25, 0.75), atol=0.01)
-    with pytest.raises(SplatzooError, match="alpha"):
+    with pytest.raises(SplatzooError, match="alpha.*or masks"):
         load_scene(white_scene, background="random")
+
+
+def test_masks_replace_the_backdrop_exactly(tmp_path):
+    """A photo over white with its mask, its backdrop replaced by black, is the same scene shot over black."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    white = load_scene(make_synthetic_scene("sweater", tmp_path / "w", views=4, width=48, height=48,
+                                            background=(1.0, 1.0, 1.0)))
+    black = load_scene(make_synthetic_scene("sweater", tmp_path / "b", views=4, width=48, height=48), masks=False)
+    for w, b in zip(white.views, black.views):
+        replaced = w.image_float(background=(0.0, 0.0, 0.0))
+        assert (replaced - b.image_float()).abs().max() <= 1.5 / 255   # the two 8-bit roundings
+        assert torch.equal(w.image_float(background=(1.0, 1.0, 1.0)), w.image_float())
+
+
+def test_auto_with_masks_learns_opaque_surfaces(white_scene, white_scene_without_masks, tmp_path):
+    """auto over a white backdrop with masks: a new colour behind the object each step (through the masks), the model
+    renders over white; without masks, or with an explicit colour, the backdrop stays fixed."""
+    scene = load_scene(white_scene)
+    assert scene.background == (1.0, 1.0, 1.0) and scene.random_background and scene.masked_backdrop
+    assert "masks" in scene.background_note and "opaque" in scene.background_note
+    assert not load_scene(white_scene, masks=False).random_background
+    assert not load_scene(white_scene, background="white").random_background
+    assert load_scene(white_scene, background="random").masked_backdrop
+    assert not load_scene(white_scene_without_masks).random_background
+    cfg = TrainConfig(iterations=6, backend="cpu", num_primitives=200, densify=False)
+    run = train(white_scene, "2dgs", {}, cfg, tmp_path / "auto", progress=False, evaluate_at_end=False)
+    assert run.model.background == (1.0, 1.0, 1.0)
+    from splatzoo.runs import Run, _load_options
+
+    record = Run(tmp_path / "auto").record()
+    assert record["scene"]["random_background"] is True and "masks" not in _load_options(record)
+    old = {**record, "scene": {k: v for k, v in record["scene"].items() if k != "random_background"}}
+    assert _load_options(old)["masks"] is False  # runs made before masks were used resume and score as made
+
+
+def test_random_needs_one_backdrop_colour_to_replace(tmp_path):
+    img = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    views = _views(img)
+    for v in views:
+        v.use_mask, v.mask_path = True, tmp_path / "m.png"
+    with pytest.raises(SplatzooError, match="backdrop of one colour"):
+        choose_background("random", views, None)
 
 
 def _views(image: np.ndarray, n: int = 4) -> list[View]:
@@ -64,8 +117,9 @@ def test_auto_keeps_a_colour_the_scene_is_made_of():
     assert colour == (0.0, 0.0, 0.0) and "no common colour" in note
 
 
-def test_no_flag_trains_as_the_right_explicit_one(white_scene, tmp_path):
-    """On a white backdrop, auto is white: the same run, bit for bit, as --background white."""
+def test_no_flag_trains_as_the_right_explicit_one(white_scene_without_masks, tmp_path):
+    """On a white backdrop without masks, auto is white: the same run, bit for bit, as --background white."""
+    white_scene = white_scene_without_masks
     cfg = TrainConfig(iterations=15, backend="cpu", num_primitives=300, densify=False)
     auto = train(white_scene, "gabor", {}, cfg, tmp_path / "auto", progress=False, evaluate_at_end=False).model
     white = train(white_scene, "gabor", {}, cfg, tmp_path / "white", progress=False, evaluate_at_end=False,

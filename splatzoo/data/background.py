@@ -6,10 +6,17 @@ must be the photos' own: an object shot on white and trained over black learns a
 `--background` takes auto (the default), black, white, R,G,B (three numbers in [0,1], or 0..255) or random:
 - auto: images with alpha are composited over black; otherwise the images' borders are sampled and, when most
   border pixels share one colour that the point cloud does not hold (a backdrop, not a wall of the scene), that
-  colour is the background (snapped to black or white when within a few levels of them); else black.
+  colour is the background (snapped to black or white when within a few levels of them); else black. When the
+  dataset also has masks (masks/<image name>), training goes on as `random` below, through the masks: renders and
+  the evaluation still use the backdrop.
 - random: every training step draws a new background colour behind both the render and the image (so coverage,
-  alpha, is learned honestly and no colour is baked into the surfels); it needs images with alpha. Renders and the
-  evaluation use black.
+  alpha, is learned honestly and no colour is baked into the surfels). It needs images with alpha (renders and the
+  evaluation then use black), or masks and a backdrop of one colour: the masks put the new colour in place of the
+  backdrop (renders and the evaluation use the backdrop).
+
+Why masks matter: over a fixed white backdrop a half-transparent surface looks right in the photos' own colour, so
+training leaves objects see-through (mean alpha about 0.7-0.8 on object pixels), which shows in any other viewer or
+background, and darkens TSDF mesh colours. A new colour each step is visible through any hole.
 """
 from __future__ import annotations
 
@@ -83,13 +90,31 @@ def border_colour(views, sample: int = SAMPLED_VIEWS) -> tuple[np.ndarray, float
     return colour, share
 
 
+def _has_masks(views) -> bool:
+    """Every (sampled) view has a mask and no alpha: the masks can replace the photos' backdrop."""
+    picks = views[:SAMPLED_VIEWS]
+    return bool(picks) and all(v.use_mask and not _has_alpha(v) for v in picks)
+
+
+MASKED = ("; the masks put a new colour in place of the backdrop each training step, so surfaces learn to be opaque "
+          "(renders over the backdrop)")
+
+
 def choose_background(option, train_views, point_colors: torch.Tensor | None) -> tuple[tuple, bool, str]:
-    """(background colour, random per step?, a sentence saying what was chosen and why) for the parsed option."""
+    """(background colour, random per step?, a sentence saying what was chosen and why) for the parsed option.
+    Random with masks (no alpha) returns the photos' backdrop as the colour: what renders and evaluation use."""
     if option == "random":
-        if not train_views or not all(_has_alpha(v) for v in train_views[:SAMPLED_VIEWS]):
-            raise DataError("--background random needs images with an alpha channel (RGBA), so that a new colour can "
-                            "be put behind them each step; these images have none. Use auto, black, white or R,G,B")
-        return NAMED["black"], True, "random per training step (images have alpha); renders over black"
+        if train_views and all(_has_alpha(v) for v in train_views[:SAMPLED_VIEWS]):
+            return NAMED["black"], True, "random per training step (images have alpha); renders over black"
+        if not _has_masks(train_views):
+            raise DataError("--background random needs images with an alpha channel (RGBA) or masks (masks/<image "
+                            "name>), so that a new colour can be put behind the object each step; these images have "
+                            "neither. Use auto, black, white or R,G,B")
+        colour, random, note = choose_background("auto", train_views, point_colors)
+        if not random:
+            raise DataError(f"--background random with masks needs a backdrop of one colour around the object, to "
+                            f"replace through the masks; {note.removeprefix('auto: ')}. Use auto, black, white or R,G,B")
+        return colour, True, "random per training step" + note.removeprefix("auto")
     if option != "auto":
         return tuple(option), False, ""
     if train_views and _has_alpha(train_views[0]):
@@ -106,7 +131,10 @@ def choose_background(option, train_views, point_colors: torch.Tensor | None) ->
             return NAMED["black"], False, f"auto: black ({share:.0%} of the image borders are ({shown}), but so are " \
                                           f"{near:.0%} of the points: a part of the scene, not a backdrop; pass " \
                                           "--background if it is one)"
+    masked = _has_masks(train_views)
+    after = MASKED if masked else ""
     for name, rgb in NAMED.items():
         if np.abs(colour - rgb).max() <= TOLERANCE:
-            return rgb, False, f"auto: {name} ({share:.0%} of the image borders are ({shown}))"
-    return tuple(float(c) for c in colour), False, f"auto: ({shown}), the colour of {share:.0%} of the image borders"
+            return rgb, masked, f"auto: {name} ({share:.0%} of the image borders are ({shown})){after}"
+    return (tuple(float(c) for c in colour), masked,
+            f"auto: ({shown}), the colour of {share:.0%} of the image borders{after}")

@@ -80,7 +80,7 @@ DEFAULT_MAX_WIDTH = 1600  # pixels; wider photos are downscaled unless --resolut
 
 
 def load_scene(path, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
-               background="auto", masks: bool = False, format: str | None = None, skip_missing: bool = False) -> Scene:
+               background="auto", masks: bool | str = "auto", format: str | None = None, skip_missing: bool = False) -> Scene:
     """Load a dataset folder in any registered format (COLMAP, Blender/NeRF-synthetic, ...), detected automatically.
 
     resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width. With
@@ -89,12 +89,13 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     datasets with transforms_test.json use their own split). background: the colour behind the surfels and behind
     RGBA images: "auto" (found in the images, see data/background.py), "random", "black", "white", "R,G,B" or an RGB
     tuple in [0,1]; the scene says what it chose in `background_note`.
-    masks: expose per-view masks (masks/<name> files, else the image alpha channel).
+    masks: expose per-view masks (masks/<name> files, else the image alpha channel); "auto": when the folder has
+    masks/ (with the background chosen from the images they then teach opaque surfaces, see data/background.py).
     format: a registered format name, to skip detection.
     skip_missing: leave out the frames of a transforms file whose image is missing (scene.notes lists them) instead
     of stopping with an error; formats whose reader has no such option say so in scene.notes.
     """
-    from .background import choose_background, parse_background
+    from .background import _has_alpha as has_alpha, choose_background, parse_background
 
     from .scene import scene_option_problem
 
@@ -112,9 +113,25 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     capped = resolution is None and max_width is None  # large photos are downscaled unless asked otherwise
     reader = FORMATS.get(format).load
     skipping = _takes(reader, "skip_missing")
-    scene = reader(path, resolution=resolution, max_width=DEFAULT_MAX_WIDTH if capped else max_width,
-                   test_every=test_every, background=option if isinstance(option, tuple) else (0.0, 0.0, 0.0),
-                   masks=masks, **({"skip_missing": True} if skip_missing and skipping else {}))
+    # masks="auto": a dataset's masks/ are read when present (the background chosen from the images then teaches
+    # opaque surfaces through them, see data/background.py; eval measures opacity on them); incomplete masks are left
+    # out, not an error
+    auto_masks = masks == "auto"
+    if auto_masks:
+        masks = (path / "masks").is_dir()
+
+    def read(masks: bool):
+        return reader(path, resolution=resolution, max_width=DEFAULT_MAX_WIDTH if capped else max_width,
+                      test_every=test_every, background=option if isinstance(option, tuple) else (0.0, 0.0, 0.0),
+                      masks=masks, **({"skip_missing": True} if skip_missing and skipping else {}))
+
+    try:
+        scene = read(masks)
+    except DataError as e:
+        if not (auto_masks and masks and "mask" in str(e)):
+            raise
+        scene = read(False)
+        scene.notes.append(f"masks/ not used: {str(e).split(';')[0]}")
     if skip_missing and not skipping:
         scene.notes.append(f"skip_missing does not apply to {format} datasets: their reader leaves out no frames")
     check_cameras(scene.views, path)
@@ -130,6 +147,7 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     for view in scene.views:
         view.background = colour
     scene.background, scene.random_background, scene.background_note = colour, random, note
+    scene.masked_backdrop = random and bool(scene.train) and not has_alpha(scene.train[0])
     if note:
         scene.notes.append(f"background: {note}")
     return scene

@@ -264,10 +264,20 @@ class View:
         return (self._composite(px) * 255 + 0.5).to(torch.uint8)
 
     def image_float(self, background=None) -> torch.Tensor:
-        """float32 [H,W,3] in [0,1] at camera size; transparent pixels show `background` (default: the view's)."""
+        """float32 [H,W,3] in [0,1] at camera size; transparent pixels show `background` (default: the view's).
+        A photo without alpha but with a mask shows `background` in place of its backdrop: the uniform colour
+        `self.background` around the object, replaced in proportion to 1 - mask (exact for an anti-aliased mask of an
+        object shot in front of that colour)."""
         px = self._premultiplied()
         if px.shape[2] == 3:
-            return torch.from_numpy(px.astype(np.float32) / np.float32(255.0))
+            photo = torch.from_numpy(px.astype(np.float32) / np.float32(255.0))
+            if background is None or not self.use_mask:
+                return photo
+            new = torch.as_tensor(background, dtype=torch.float32)
+            change = new - torch.as_tensor(self.background, dtype=torch.float32)
+            if not change.any():
+                return photo
+            return (photo + (1 - self.mask()[..., None]) * change).clamp_(0, 1)
         return self._composite(px, background)
 
     def _composite(self, px: np.ndarray, background=None) -> torch.Tensor:
@@ -307,6 +317,7 @@ class Scene:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mesh_path: Path | None = None
     random_background: bool = False   # training draws a new background colour per view and step
+    masked_backdrop: bool = False     # ... put behind the object through the masks, in place of the photos' backdrop
     background_note: str = ""         # how the background was chosen (when it was not given)
     notes: list[str] = field(default_factory=list)  # what loading decided for the user (shown when training starts)
 

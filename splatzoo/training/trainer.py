@@ -310,7 +310,10 @@ class Trainer:
         self.background = torch.tensor(scene.background, dtype=torch.float32, device=device)
         self.random_background = bool(getattr(scene, "random_background", False))
         # the model renders over the photos' backdrop by default once trained (random colours teach no backdrop)
-        self.net.background = None if self.random_background else tuple(float(c) for c in scene.background)
+        # (random colours through masks replace the photos' backdrop, which the model then renders over)
+        masked = bool(getattr(scene, "masked_backdrop", False))
+        self.net.background = None if self.random_background and not masked else \
+            tuple(float(c) for c in scene.background)
         self.view_index = {id(v): i for i, v in enumerate(scene.train)}
         self.densify_on = cfg.densify and hasattr(self.net, "logit_opacity")
         self.mcmc = self.densify_on and cfg.strategy == "mcmc"
@@ -374,7 +377,7 @@ class Trainer:
         if self.random_background:
             # a colour of its own for each (step, view)
             bg = torch.rand(3, generator=self._view_generator(view, step, salt=0))
-            target = view.image_float(background=bg)
+            target = view.image_float(background=bg)  # RGBA: composited over bg; masked photo: backdrop replaced
             bg = bg.to(self.device)
         else:
             target, bg = view.image_float(), self.background
