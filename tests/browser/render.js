@@ -40,6 +40,9 @@ export function makeCamera(cam) {
     0, 0, -(far + near) / (far - near), -2 * far * near / (far - near),
     0, 0, -1, 0);
   camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
+  // what viewers read besides the matrix (GaussianSplats3D culls with fov): the vertical field of view and aspect
+  camera.fov = THREE.MathUtils.radToDeg(2 * Math.atan(H / (2 * fy)));
+  camera.aspect = W / H;
   camera.updateProjectionMatrix = () => {};  // a viewer must not rebuild it from fov / aspect
 
   const worldToCamera = new THREE.Matrix4().set(...rows4(cam.world_to_camera));
@@ -111,7 +114,7 @@ async function renderGs3d(url, renderer, scene, camera, options) {
   }
   if (settled < 4) throw new Error("gs3d: the splats were not sorted in time");
   renderer.render(scene, camera);
-  return { splats: viewer.splatMesh.getSplatCount() };
+  return { splats: viewer.splatMesh.getSplatCount(), rendered: viewer.splatRenderCount };
 }
 
 const VIEWERS = { spark: renderSpark, gs3d: renderGs3d };

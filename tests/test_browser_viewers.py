@@ -1,0 +1,120 @@
+"""A splatzoo PLY export in real third-party splat viewers (Spark, GaussianSplats3D) in headless Chromium: the camera
+lands every splat on its pixel, and a trained 2DGS model's export, seen with each viewer's default settings, scores
+within 2 dB of splatzoo's own render against the ground truth."""
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from splatzoo import Camera, create_model
+from splatzoo.export import save_ply
+from splatzoo.geometry import normals_to_quats, rgb_to_sh0
+
+import browser_viewers as bv
+
+
+@pytest.fixture(scope="module")
+def browser():
+    reason = bv.missing()
+    if reason:
+        if os.environ.get("SPLATZOO_REQUIRE_BROWSER"):
+            pytest.fail(reason)
+        pytest.skip(reason)
+    with bv.BrowserViewers() as b:
+        yield b
+
+
+def surfel_model(means, normals, sigma, opacity, color):
+    """A 2dgs model with exactly these surfels (means [N,3], normals [N,3], sigma [N] world units, opacity [N],
+    color [N,3])."""
+    model = create_model("2dgs", points=means.float(), colors=color.float())
+    with torch.no_grad():
+        model.means.copy_(means)
+        model.quats.copy_(normals_to_quats(normals.double()).float())
+        model.log_scales.copy_(torch.log(sigma.float())[:, None].expand(-1, 2))
+        model.logit_opacity.copy_(torch.logit(opacity.float()))
+        model.sh_dc.copy_(rgb_to_sh0(color.float())[:, None])
+    return model
+
+
+def test_splats_land_on_their_pixels(browser, tmp_path):
+    """Two small surfels placed to project at known sub-pixel positions of a turned, non-square camera with an
+    off-centre principal point and fx != fy: in each viewer their centroids are where splatzoo puts them, and the
+    background colour comes back exactly."""
+    W, H = 80, 60
+    base = Camera.look_at([1.0, -0.7, -3.5], [0.1, 0.2, 0.0], width=W, height=H, fov_deg=50)
+    K = base.K.clone().double()
+    K[0, 2], K[1, 2], K[1, 1] = 0.3 * W, 0.65 * H, 1.1 * K[1, 1]
+    cam = Camera(base.world_to_camera.double(), K, W, H)
+    targets = [(23.25, 41.5), (60.5, 12.75)]
+    # GaussianSplats3D 0.4.7 loses splats of a scene of only a handful: 30 more lie off-screen to the left
+    pixels = targets + [(-40.0 - 3 * i, 30.0) for i in range(30)]
+    c2w = torch.linalg.inv(cam.world_to_camera)
+    rays = torch.linalg.solve(K, torch.tensor([[u, v, 1.0] for u, v in pixels], dtype=torch.float64).T)
+    means = (c2w[:3, :3] @ (3.0 * rays) + c2w[:3, 3:]).T  # at camera depth 3
+    normals = (c2w[:3, :3] @ torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)).expand(len(pixels), 3)
+    n = len(pixels)
+    model = surfel_model(means, normals, torch.full((n,), 1.5 * 3.0 / float(K[0, 0])), torch.full((n,), 0.9),
+                         torch.tensor([[0.1, 0.9, 0.2]]).expand(n, 3))
+    ply = save_ply(model, tmp_path / "two.ply")
+    bv.ensure_third_scale(ply)
+    bg = (0.2, 0.4, 0.6)
+
+    def centroids(img):
+        weight = np.abs(img - np.array(bg)).sum(-1)
+        ys, xs = np.mgrid[0:H, 0:W] + 0.5  # pixel centres
+        out = []
+        for u, v in targets:
+            w = weight * ((np.abs(xs - u) < 8) & (np.abs(ys - v) < 8))
+            out.append(((w * xs).sum() / w.sum(), (w * ys).sum() / w.sum()))
+        return np.array(out)
+
+    with torch.no_grad():
+        ref = model.render(cam, background=torch.tensor(bg), backend="cpu").rgb.double().numpy()
+    assert np.abs(centroids(ref) - np.array(targets)).max() < 0.01
+    for viewer in bv.VIEWERS:
+        img = browser.render(ply, cam, viewer=viewer, background=bg)
+        c = centroids(img)
+        assert np.abs(c - np.array(targets)).max() < 0.1, (viewer, c)  # Spark stores centres as float16
+        far = (slice(0, 20), slice(0, 10))
+        assert np.abs(img[far] - np.array(bg)).max() <= 0.5 / 255 + 1e-9, viewer
+        assert abs(img[..., 1].max() - ref[..., 1].max()) < 0.06, viewer  # the colour is not colour-managed
+
+
+@pytest.fixture(scope="module")
+def trained_2dgs(tmp_path_factory):
+    """A small 2dgs model trained on a synthetic scene, its test view and the PLY export."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.runs import load_run, train
+    from splatzoo.training import TrainConfig
+
+    root = tmp_path_factory.mktemp("browser_viewers")
+    data = make_synthetic_scene("sweater", root / "data", views=10, width=64, height=64, background=(1, 1, 1))
+    train(data, "2dgs", {}, TrainConfig(iterations=300, backend="cpu", num_primitives=1000, densify=False),
+          root / "2dgs", progress=False, evaluate_at_end=False)
+    model, scene, _ = load_run(root / "2dgs", "cpu")
+    ply = save_ply(model, root / "2dgs.ply")
+    bv.ensure_third_scale(ply)
+    return model, scene.test[0], ply
+
+
+def test_2dgs_export_in_viewers_matches_splatzoo(browser, trained_2dgs):
+    """The issue's target: a 2dgs export rendered by a third-party viewer with its default settings scores within
+    2 dB of splatzoo's own render against the ground truth. Both viewers draw each surfel as a screen-space Gaussian
+    (an affine projection, 8-bit colours, their own 0.3 px^2 dilation: Spark rescales the opacity, GS3D does not)
+    where splatzoo intersects rays with the surfel; on this model that costs them under 1 dB against the truth and
+    leaves them above 25 dB from splatzoo's render (measured: benchmarks/bench_browser_viewers.py)."""
+    model, view, ply = trained_2dgs
+    bg = (1.0, 1.0, 1.0)
+    gt = view.image_float().double().numpy()
+    with torch.no_grad():
+        own = model.render(view.camera, background=torch.tensor(bg), backend="cpu").rgb.clamp(0, 1).double().numpy()
+    own_gt = bv.psnr(own, gt)
+    print(f"\nsplatzoo vs ground truth {own_gt:.2f} dB")
+    for viewer in bv.VIEWERS:
+        img = browser.render(ply, view.camera, viewer=viewer, background=bg)
+        vs_own, vs_gt = bv.psnr(img, own), bv.psnr(img, gt)
+        print(f"{viewer}: vs splatzoo {vs_own:.2f} dB, vs ground truth {vs_gt:.2f} dB")
+        assert vs_gt >= own_gt - 2.0, (viewer, vs_gt, own_gt)
+        assert vs_own >= 25.0, (viewer, vs_own)
