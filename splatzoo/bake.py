@@ -70,8 +70,11 @@ class BakeOptions:
     position_lr: float = field(default=1.6e-5, metadata={
         "help": "position learning rate at the start, x the cameras' extent (decays 100x over the fit)"})
     max_per_surfel: int = field(default=16, metadata={"help": "the most splats one source surfel is split into"})
-    seed: int = 0
-    backend: str = "auto"
+    seed: int = field(default=0, metadata={"help": "seed of the jittered views and the view order"})
+    backend: str = field(default="auto", metadata={"help": "rasterizer: auto, reference, cpu or cuda"})
+
+    def __post_init__(self):
+        self.validate()
 
     def validate(self) -> "BakeOptions":
         def bad(name, want):
@@ -559,35 +562,22 @@ def bake_model(model, cameras: list[Camera], options: BakeOptions | None = None,
 
 # --- export --------------------------------------------------------------------------------------------------
 
-def load_source(source: Path, backend: str = "auto"):
-    """(model, cameras) of a run folder (its training cameras; orbit cameras when its dataset is gone) or a model
-    file (.pt or .ply: orbit cameras)."""
+def load_source(source, backend: str = "auto"):
+    """(model, cameras, the file the model was read from) of a run folder (its training cameras; orbit cameras when
+    its dataset is gone) or a model file (.pt or .ply: orbit cameras), the model on the backend's device."""
+    from .export import load_source as load_model_source
     from .rasterizers import select_backend
     from .runs import Run
 
-    source = Path(source)
-    if not source.exists():
-        raise SplatzooError(f"{source} does not exist; pass a run directory written by `splatzoo train` or a model "
-                            "file (.pt or .ply)")
-    device = select_backend(backend).torch_device()
-    if source.is_dir():
-        run = Run(source)
-        model = run.model(backend)
+    model, path = load_model_source(Path(source))
+    model = model.to(select_backend(backend).torch_device())
+    cameras = None
+    if Path(source).is_dir():
         try:
-            cameras = [v.camera for v in run.scene().train]
-        except SplatzooError:  # the dataset moved or was trained in memory: look at the model from around it
-            cameras = orbit_cameras_around(model)
-        return model, cameras
-    if source.suffix.lower() == ".ply":
-        from .export import load_ply
-
-        model = load_ply(source)
-    else:
-        from .zoo import load_model
-
-        model = load_model(source)
-    model = model.to(device)
-    return model, orbit_cameras_around(model)
+            cameras = [v.camera for v in Run(source).scene().train]
+        except SplatzooError:  # the dataset moved, or the run trained on a scene in memory
+            cameras = None
+    return model, cameras or orbit_cameras_around(model), path
 
 
 def export_baked(source, out, *, progress=None, **options) -> Path:
@@ -600,9 +590,9 @@ def export_baked(source, out, *, progress=None, **options) -> Path:
     source, out = Path(source), Path(out)
     if out.suffix.lower() != ".ply":
         raise SplatzooError(f"the baked export writes a PLY file, so --out must end in .ply; got {out}")
-    if out.exists() and source.exists() and (out.resolve() == source.resolve()):
-        raise SplatzooError(f"refusing to write the bake onto the model being read ({source}); choose another --out")
-    model, cameras = load_source(source, opts.backend)
+    model, cameras, path = load_source(source, opts.backend)
+    if out.exists() and out.resolve() == Path(path).resolve():
+        raise SplatzooError(f"refusing to write the bake onto the model being read ({path}); choose another --out")
     baked, report = bake_model(model, cameras, opts, progress=progress)
     path = save_ply(baked, out)
     _say(progress)(f"wrote {path}: {report['splats']} splats, bake error {report['bake_db']:.2f} dB")
