@@ -542,14 +542,31 @@ def extract_mesh_command(
 
 @app.command("export")
 def export_command(
-    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train` (or a model .pt file)",
-                               callback=_path_arg),
-    out: Path = typer.Option(..., "--out", "-o", help="PLY file to write", callback=_path_arg),
+    run: Optional[Path] = typer.Argument(None, metavar="RUN", help="run directory written by `splatzoo train`, or a "
+                                         "model file (.pt or .ply)", callback=_path_arg),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="file to write (its suffix follows the format: .ply, "
+                                       ".spz, .sog, ...)", callback=_path_arg),
+    format: str = typer.Option("ply", "--format", "-f", metavar="FORMAT",
+                               help="export format, with options inline as for models (baked:max_splats=16000); "
+                               "`--format help` or --list shows them all"),
+    list_formats: bool = typer.Option(False, "--list", help="list the export formats and their options, and exit"),
 ) -> None:
-    """Export a trained model as a binary PLY that 3DGS/2DGS tools read (Gabor waves as extra properties)."""
-    from .export import export_run
+    """Export a trained model: a PLY that every 3DGS/2DGS tool reads (the default; Gabor waves ride along as extra
+    properties), SPZ, SOG, a baked or meshed model (see --list)."""
+    from .export import EXPORTERS, describe_format, export
 
-    path = export_run(run, out)
+    if list_formats or format.strip().lower() in ("help", "list", "?"):
+        for entry in EXPORTERS.entries():
+            if entry.broken:
+                typer.echo(f"{entry.name:<15} {entry.origin:<24} BROKEN: {entry.error}")
+                continue
+            spec = entry.spec
+            typer.echo(f"{entry.name:<15} {', '.join(spec.suffixes):<16} {spec.description}")
+            typer.echo(describe_format(spec))
+        return
+    if run is None or out is None:
+        raise typer.BadParameter("give a RUN (or model file) and --out FILE (or --list to see the formats)")
+    path = export(run, out, format, progress=lambda msg: typer.echo(msg, err=True))
     typer.echo(f"wrote {path}")
 
 

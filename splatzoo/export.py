@@ -1,38 +1,81 @@
-"""Model export to binary PLY, the point-cloud layout that 3DGS/2DGS tools read, and back.
+"""Model export: a registry of formats (`splatzoo export RUN --format FMT --out FILE`), the PLY layout every splat
+tool reads, and `load_ply`, which reads it back (and the 2DGS and 3DGS PLY files of other tools).
 
-One vertex per primitive, float32 properties, little endian:
+Formats
+-------
+`EXPORTERS` holds one `ExporterSpec` per format: name, description, file suffix(es), an options dataclass and a
+function `fn(source, out, *, progress=None, **options) -> Path`, where `source` is a run folder or a model file (.pt
+or .ply). Built-ins: `ply` (below), `spz`, `sog` and `compressed-ply` (our `ply` converted by PlayCanvas
+splat-transform, see splatzoo.splat_tools), and `baked` (splatzoo.bake) and `mesh-glb` (splatzoo.mesh_texture),
+imported only when used. Plugins add formats through the entry-point group `splatzoo.exporters`, whose value is an
+`ExporterSpec`. Options use the model-option syntax: `--format baked:max_splats=16000`.
+
+The PLY layout (`ply`)
+----------------------
+One vertex per primitive, float32 properties, little endian, in the order of the 3DGS layout:
   x, y, z                      position (`means`)
   nx, ny, nz                   surfel normal (third column of the rotation), for viewers; not read back
   f_dc_0..2                    SH DC colour; for models without SH a preview of the mean colour, not read back
   f_rest_*                     higher SH bands, channel-major as 3DGS writes them (all R, then G, then B)
   opacity                      logit
-  scale_0, scale_1             log sigma (2DGS: two scales)
+  scale_0, scale_1, scale_2    log sigma; scale_2 is the surfel's thickness, -inf (see below); not read back
   rot_0..3                     quaternion (w, x, y, z), unnormalised as trained
   gabor_color_base_0..2, gabor_color_diff_0..2 (or, for --color-param paper, gabor_color_a_0..2, gabor_color_b_0..2),
   gabor_weight_*, gabor_freq_*, gabor_phase_*   Gabor-family colour and waves
   <param>_<i>                  any other per-primitive parameter of a plugin, flattened row-major
 Header comments name the splatzoo model and its config (`comment splatzoo model gabor`,
 `comment splatzoo config {"n_waves": 4}`), and `comment splatzoo antialias true` a model trained and rendered with
-the pixel-footprint filter, so `load_ply` rebuilds the same model. Parameters are stored exactly
-(float32 as trained), so a round trip renders identically. A PLY without those comments (written by 2DGS itself)
-loads as a `2dgs` model whose SH degree follows from the number of f_rest properties.
+the pixel-footprint filter, so `load_ply` rebuilds the same model. Parameters are stored exactly (float32 as trained),
+so a round trip renders identically.
 
-numpy only: no plyfile dependency.
+The third scale. Every 3DGS reader needs scale_2 (PlayCanvas and Spark refuse a file without it; GaussianSplats3D
+computes exp(undefined) = NaN), and the 2DGS-aware ones agree on what a surfel's third scale is: zero, the
+thickness along the normal, which is the third rotation column (as in our surfels). PlayCanvas splat-transform
+(3.7.0) reads a PLY without scale_2 as a 2DGS scene and fills the missing column with -Infinity, "linear 0, a
+zero-thickness surfel"; its NaN filter keeps -Infinity in scale_*, and its SOG quantiser gives -Infinity its own
+codebook slot. Spark (2.2.0) encodes a linear scale below exp(-30) as exactly zero, and with `enable2DGS` draws a
+splat with a zero scale as a flat surfel over the other two axes. GaussianSplats3D (0.4.7) in its 2D render mode
+overrides the third scale with 0. So we write scale_2 = -inf, log(0): every one of them reads it as exactly flat, and
+a plain 3DGS renderer gets exp(-inf) = 0, a flat Gaussian. The header also carries `comment SplatRenderMode: 2dgs`,
+the tag Brush writes and splat-transform reads (it then carries "2dgs" into SOG's meta.json).
+
+Reading (`load_ply`)
+--------------------
+- With a `splatzoo model` header comment: that model with that config, exactly.
+- Without one, the 3DGS/2DGS property set (x y z, f_dc_0..2, opacity, scale_0 scale_1, rot_0..3, f_rest_* for
+  SH degree 1..3) is read as a `2dgs` model whose SH degree follows from the number of f_rest properties:
+  - two scales (2DGS's own files, splat-transform's 2DGS output) or a third that is -inf everywhere: exactly.
+  - a real third scale (a 3DGS file): each Gaussian becomes the surfel spanning its two largest axes; the quaternion
+    is turned (a cyclic permutation of the axes, so no mirror) so that the dropped, thinnest axis becomes the normal.
+    This is an approximation for thick Gaussians, so a warning says how many were far from flat.
+- A file whose model cannot be told is an error that names what is missing, never a silent 2dgs: properties a
+  splatzoo model writes (gabor_*, falloff_logit, ...) without the header, or a missing standard property. Other
+  unknown properties (another tool's extras) are ignored with a warning.
+All reading and writing of the file itself goes through splatzoo.ply (plyfile).
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
+import typing
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 import torch
 
-from .errors import SplatzooError
-from .io import atomic_path, ply_type_name, read_ply_vertices
+from .errors import PluginError, SplatzooError
+from .io import read_ply_vertices, write_ply_vertices
+from .ply import ply_type_name
+from .registry import Registry
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2     # 2: scale_2 (-inf) and the SplatRenderMode comment; version 1 files (two scales) still load
+FLAT_LOG_SCALE = float("-inf")  # scale_2 of a surfel: log(0), see the module docstring
+RENDER_MODE_COMMENT = "SplatRenderMode: 2dgs"
 
 # parameter name -> property prefix (or explicit names) of the standard layouts
 _FIXED = {"means": ["x", "y", "z"], "logit_opacity": ["opacity"]}
@@ -41,7 +84,12 @@ _PREFIX = {"log_scales": "scale_", "quats": "rot_", "sh_dc": "f_dc_", "sh_rest":
            "color_diff": "gabor_color_diff_", "wave_weights": "gabor_weight_",
            "wave_freqs": "gabor_freq_", "wave_phases": "gabor_phase_"}
 _CHANNEL_MAJOR = {"sh_rest"}          # 3DGS stores SH bands transposed: [N, 3, bands]
-_DERIVED = ("nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2")  # written for viewers, recomputed on load
+_DERIVED = ("nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "scale_2")  # written for viewers, not read back
+# the properties of the 3DGS/2DGS layout a file without a splatzoo header must have
+_STANDARD = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+             "rot_0", "rot_1", "rot_2", "rot_3")
+_SH_DEGREE = {0: 0, 9: 1, 24: 2, 45: 3}  # f_rest count -> SH degree
+
 
 def _property_names(name: str, trailing: tuple[int, ...]) -> list[str]:
     """The PLY property names of a per-primitive parameter with shape [N, *trailing]."""
@@ -117,25 +165,14 @@ def _preview_dc(model, per: dict[str, torch.Tensor]) -> np.ndarray:
 
 
 def _config_dict(model) -> dict:
-    import dataclasses
-
     cfg = getattr(model, "config", None)
     return dataclasses.asdict(cfg) if cfg is not None and dataclasses.is_dataclass(cfg) else {}
 
 
-def save_ply(model, path) -> Path:
-    """Write `model` as a binary PLY (layout in the module docstring), atomically. Returns the path."""
-    from . import __version__
-
-    path = Path(path)
-    if path.is_dir():
-        raise SplatzooError(f"cannot write the PLY to {path}: it is a folder; give a file name such as {path / 'model.ply'}")
+def model_columns(model) -> dict[str, np.ndarray]:
+    """The model's PLY properties in file order (name -> float32 [N]), as `save_ply` writes them."""
     per = _exportable_parameters(model)
-    name = getattr(model, "name", "")
-    if not name:
-        raise SplatzooError(f"cannot export a {type(model).__name__} without a registry name; create it with "
-                            "splatzoo.create_model so that load_ply can rebuild it")
-    n = per["means"].shape[0]
+    name = getattr(model, "name", "") or type(model).__name__
     columns: dict[str, np.ndarray] = {"x": None, "y": None, "z": None}  # order: 3DGS layout first
     normals = _surfel_normals(per)
     columns.update({"nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]})
@@ -144,6 +181,7 @@ def save_ply(model, path) -> Path:
         columns.update({f"f_dc_{i}": dc[:, i] for i in range(3)})
     order = ["means", "sh_dc", "sh_rest", "logit_opacity", "log_scales", "quats"]
     order += [k for k in per if k not in order]
+    n = per["means"].shape[0]
     for pname in order:
         if pname not in per:
             continue
@@ -157,37 +195,40 @@ def save_ply(model, path) -> Path:
                 raise SplatzooError(f"cannot export model {name!r}: parameters map to the PLY property {prop!r} twice; "
                                     "rename the plugin parameter")
             columns[prop] = cols[:, i]
+        if pname == "log_scales" and props == ["scale_0", "scale_1"]:
+            columns["scale_2"] = np.full(n, FLAT_LOG_SCALE, np.float32)  # a surfel: zero thickness
+    return columns
+
+
+def save_ply(model, path, *, text: bool = False) -> Path:
+    """Write `model` as a binary (or, with text=True, ASCII) PLY in the layout of the module docstring, atomically.
+    Returns the path."""
+    from . import __version__
+
+    path = Path(path)
+    if path.is_dir():
+        raise SplatzooError(f"cannot write the PLY to {path}: it is a folder; give a file name such as {path / 'model.ply'}")
+    name = getattr(model, "name", "")
+    if not name:
+        _exportable_parameters(model)  # its own, more specific, refusal first
+        raise SplatzooError(f"cannot export a {type(model).__name__} without a registry name; create it with "
+                            "splatzoo.create_model so that load_ply can rebuild it")
+    columns = model_columns(model)
+    n = len(next(v for v in columns.values() if v is not None))
     arr = np.empty(n, dtype=[(k, "<f4") for k in columns])
     for k, v in columns.items():
         arr[k] = v
-    header = ["ply", "format binary_little_endian 1.0",
-              f"comment splatzoo {__version__} ply export, format {FORMAT_VERSION}",
-              f"comment splatzoo model {name}",
-              f"comment splatzoo config {json.dumps(_config_dict(model), separators=(',', ':'), default=str)}"]
+    comments = [f"splatzoo {__version__} ply export, format {FORMAT_VERSION}",
+                f"splatzoo model {name}",
+                f"splatzoo config {json.dumps(_config_dict(model), separators=(',', ':'), default=str)}"]
     if getattr(model, "antialias", False):  # rendered with the pixel-footprint filter (absent: without)
-        header.append("comment splatzoo antialias true")
-    header.append(f"element vertex {n}")
-    header += [f"property float {k}" for k in columns]
-    header.append("end_header")
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(arr.tobytes())
-    return path
+        comments.append("splatzoo antialias true")
+    if "scale_2" in columns and np.all(columns["scale_2"] == FLAT_LOG_SCALE):
+        comments.append(RENDER_MODE_COMMENT)
+    return write_ply_vertices(path, arr, comments, text=text)
 
 
 # --- reading ------------------------------------------------------------------------------------------------
-
-def _infer_2dgs(names: list[str], path) -> tuple[str, dict]:
-    if "scale_2" in names:
-        raise SplatzooError(f"{path} looks like a 3DGS PLY (three scales); splatzoo models are 2D surfels with two "
-                            "(scale_0, scale_1). Only 2DGS or splatzoo PLY files can be loaded")
-    rest = sum(1 for k in names if k.startswith("f_rest_"))
-    degree = {0: 0, 9: 1, 24: 2, 45: 3}.get(rest)
-    if degree is None:
-        raise SplatzooError(f"{path}: {rest} f_rest properties match no SH degree (0, 9, 24 or 45 expected)")
-    return "2dgs", {"sh_degree": degree}
-
 
 def _present_width(name: str, names: list[str]) -> int:
     """How many consecutive `<prefix>0, <prefix>1, ...` properties the file has for a [N, width] parameter."""
@@ -197,8 +238,91 @@ def _present_width(name: str, names: list[str]) -> int:
     return width
 
 
-def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dict]:
-    """(model name, config) from the `splatzoo model` / `splatzoo config` comments, or the 2DGS layout without them."""
+def _builtin_properties() -> dict[str, str]:
+    """Property name -> built-in model, for the properties a built-in splatzoo model writes beyond the 3DGS layout
+    (at its default config). A file holding them without a header was written by splatzoo and lost its header."""
+    from .registry import MODELS
+    from .zoo import create_model
+
+    out = {}
+    for entry in MODELS.entries():
+        if entry.origin != "built-in" or entry.broken:
+            continue
+        try:
+            per = _exportable_parameters(create_model(entry.name))
+        except Exception:  # a model that cannot be built empty or exported says nothing here
+            continue
+        for pname, value in per.items():
+            for prop in _property_names(pname, tuple(value.shape[1:])):
+                if prop not in _STANDARD and not prop.startswith("f_rest_"):
+                    out.setdefault(prop, entry.name)
+    return out
+
+
+def _standard_model(path, names: list[str]) -> tuple[str, dict, list[str]]:
+    """(model, config, ignored properties) of a PLY without a splatzoo header: the 2DGS/3DGS layout as `2dgs`, or an
+    error naming why its model cannot be told."""
+    fix = ("Export it again with `splatzoo export` (which writes the header), or add the header comments "
+           "`comment splatzoo model NAME` and `comment splatzoo config {...}`")
+    ours = _builtin_properties()
+    found = [k for k in names if k.startswith("gabor_") or k in ours]
+    if found:
+        model = ours.get(found[0], "gabor")
+        raise SplatzooError(f"{path} holds the properties {', '.join(found[:4])}{' ...' if len(found) > 4 else ''} of "
+                            f"the splatzoo model {model!r} but no 'comment splatzoo model' header, so its model (and "
+                            f"its options) cannot be told; loading it as 2dgs would drop them silently. {fix}")
+    missing = [k for k in _STANDARD if k not in names]
+    if missing:
+        what = ("a point cloud (colours as red, green, blue), not a splat model" if "red" in names else
+                "not a 2DGS/3DGS splat file")
+        raise SplatzooError(f"{path} has no 'comment splatzoo model' header and lacks the properties "
+                            f"{', '.join(missing)} of the 2DGS/3DGS layout, so its model cannot be told: it is {what}. "
+                            f"{fix}")
+    rest = sum(1 for k in names if k.startswith("f_rest_"))
+    if rest not in _SH_DEGREE or any(f"f_rest_{i}" not in names for i in range(rest)):
+        raise SplatzooError(f"{path}: its {rest} f_rest properties match no SH degree (0, 9, 24 or 45 expected, "
+                            "numbered from f_rest_0); the file is damaged or not a 2DGS/3DGS splat file")
+    known = set(_STANDARD) | set(_DERIVED) | {f"f_rest_{i}" for i in range(rest)}
+    ignored = [k for k in names if k not in known]
+    return "2dgs", {"sh_degree": _SH_DEGREE[rest]}, ignored
+
+
+# quaternions (w, x, y, z) of the cyclic axis permutations: R @ P puts axis k last (k = 0: (e1, e2, e0); k = 1:
+# (e2, e0, e1)), a proper rotation, so no axis is mirrored
+_CYCLE = {0: np.array([0.5, 0.5, 0.5, 0.5]), 1: np.array([0.5, -0.5, -0.5, -0.5])}
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b of quaternions (w, x, y, z) [N,4] and [4]: the rotation a after b."""
+    aw, ax, ay, az = a.T
+    bw, bx, by, bz = b
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], 1)
+
+
+def flatten_gaussians(log_scales: np.ndarray, quats: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """3D Gaussians (log scales [N,3], quaternions [N,4]) -> surfels (log scales [N,2], quaternions [N,4]) spanning
+    each Gaussian's two largest axes, the thinnest becoming the normal (third rotation column); and how many were far
+    from flat (thinnest sigma above a tenth of the next). A Gaussian whose third axis is already the thinnest keeps
+    its quaternion bit for bit."""
+    s = log_scales.astype(np.float64)
+    q = quats.astype(np.float64)
+    thin = np.where(s[:, 2] <= s[:, :2].min(1), 2, np.where(s[:, 0] <= s[:, 1], 0, 1))
+    out_s, out_q = s[:, :2].copy(), q.copy()
+    for k, keep in ((0, [1, 2]), (1, [2, 0])):
+        rows = thin == k
+        if rows.any():
+            out_s[rows] = s[rows][:, keep]
+            out_q[rows] = _quat_mul(q[rows], _CYCLE[k])
+    kept = np.sort(s, 1)
+    with np.errstate(invalid="ignore"):
+        thick = int(np.count_nonzero(kept[:, 0] > kept[:, 1] + math.log(0.1)))
+    return out_s.astype(np.float32), np.where((thin == 2)[:, None], quats, out_q.astype(np.float32)), thick
+
+
+def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dict, bool]:
+    """(model name, config, whether the header named it) from the `splatzoo model` / `splatzoo config` comments, or
+    the standard layout's model without them."""
     model_name, config = None, {}
     for c in comments:
         if c.startswith("splatzoo model "):
@@ -206,26 +330,27 @@ def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dic
         elif c.startswith("splatzoo config "):
             try:
                 config = json.loads(c[len("splatzoo config "):])
-            except json.JSONDecodeError as e:
-                raise SplatzooError(f"{path}: the 'splatzoo config' header comment is not valid JSON ({e}); "
-                                    "export the model again") from None
+            except (json.JSONDecodeError, RecursionError) as e:
+                raise SplatzooError(f"{path}: the 'splatzoo config' header comment is not valid JSON "
+                                    f"({str(e)[:100]}); export the model again") from None
             if not isinstance(config, dict):
                 raise SplatzooError(f"{path}: the 'splatzoo config' header comment must be a JSON object of model "
                                     f"options, got a {type(config).__name__}; export the model again")
     if model_name is None:
-        return _infer_2dgs(names, path)
-    return model_name, config
+        return (*_standard_model(path, names)[:2], False)
+    return model_name, config, True
 
 
 def load_ply(path):
-    """Rebuild the model written by `save_ply` (or a 2DGS point_cloud.ply, as a `2dgs` model). The header's model
-    and config decide what is read, so each is checked against what the file holds before it sizes anything."""
+    """Rebuild the model written by `save_ply`, or read another tool's 2DGS/3DGS PLY as a `2dgs` model (see the
+    module docstring). The header's model and config decide what is read, so each is checked against what the file
+    holds before it sizes anything."""
     from .zoo import create_model, stored_config
 
     arr, comments = read_ply_vertices(path)
     names = list(arr.dtype.names)
     present = set(names)
-    model_name, config = _header_model(path, comments, names)
+    model_name, config, ours = _header_model(path, comments, names)
     config = stored_config(model_name, config)
     try:
         model = create_model(model_name, **config)   # no primitives yet: it tells each parameter's trailing shape
@@ -235,6 +360,28 @@ def load_ply(path):
         raise SplatzooError(f"{path}: model {model_name!r} refuses the header's config {str(config)[:200]} "
                             f"({type(e).__name__}: {str(e)[:200]}); export the model again") from None
     n = arr.shape[0]
+    columns = {k: arr[k] for k in names}
+    notes = []
+    if not ours:
+        ignored = _standard_model(path, names)[2]
+        if ignored:
+            notes.append(f"{path}: ignored the properties {', '.join(ignored[:8])}{' ...' if len(ignored) > 8 else ''}, "
+                         "which the 2DGS/3DGS layout does not have")
+        if "scale_2" in present and not np.all(arr["scale_2"] == FLAT_LOG_SCALE):
+            _float_columns(path, arr, ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"],
+                           "log_scales")
+            scales = np.stack([arr[f"scale_{i}"] for i in range(3)], 1)
+            quats = np.stack([arr[f"rot_{i}"] for i in range(4)], 1)
+            bad = ~np.isfinite(quats).all(1) | np.isnan(scales).any(1) | (scales == np.inf).any(1)
+            if bad.any():
+                raise SplatzooError(f"{path}: {int(bad.sum())} Gaussian(s) have NaN or infinite scales or rotations; "
+                                    "the file is damaged")
+            flat_scales, flat_quats, thick = flatten_gaussians(scales, quats)
+            columns.update({"scale_0": flat_scales[:, 0], "scale_1": flat_scales[:, 1]})
+            columns.update({f"rot_{i}": flat_quats[:, i] for i in range(4)})
+            notes.append(f"{path} is a 3DGS file (three scales): each Gaussian was read as the 2D surfel spanning its "
+                         f"two largest axes, its thinnest axis becoming the normal; {thick} of {n} were far from flat "
+                         "(thinnest axis over a tenth of the next), so renders differ from a 3DGS renderer's there")
     per = _exportable_parameters(model)
     new = {}
     variable = set(getattr(model, "variable_width", ()))
@@ -255,12 +402,8 @@ def load_ply(path):
                                 f"of model {model_name!r} {config}; it was not written by "
                                 "`splatzoo export` for this model (or with another config)")
         if empty.is_floating_point():
-            stored = next((p for p in props if arr.dtype[p].kind != "f"), None)
-            if stored is not None:  # float32 parameters written as int or uchar lose their fractions
-                raise SplatzooError(f"{path}: {stored} is stored as {ply_type_name(arr.dtype[stored])} but holds a "
-                                    f"float parameter ({pname!r}); the file was not written by splatzoo export or is "
-                                    "damaged. Export the model again")
-        cols = np.stack([arr[p].astype(np.float32) for p in props], 1) if props else np.zeros((n, 0), np.float32)
+            _float_columns(path, arr, props, pname)
+        cols = np.stack([columns[p].astype(np.float32) for p in props], 1) if props else np.zeros((n, 0), np.float32)
         bad = int(np.count_nonzero(~np.isfinite(cols)))
         if bad:
             raise SplatzooError(f"{path}: parameter {pname!r} has {bad} non-finite (NaN or inf) value(s) in "
@@ -275,34 +418,209 @@ def load_ply(path):
         new[pname] = _from_columns(pname, cols, trailing)
     model.replace_parameters(new)
     model.antialias = "splatzoo antialias true" in comments
+    model.notes = notes
+    for note in notes:
+        warnings.warn(note, UserWarning, stacklevel=2)
     return model
 
 
-def export_run(run, out) -> Path:
-    """Export the trained model of a run directory (through splatzoo.runs.Run), or a model .pt file, to the PLY
-    `out`."""
+def _float_columns(path, arr, props, pname: str) -> None:
+    """float32 parameters written as int or uchar lose their fractions: refuse them."""
+    stored = next((p for p in props if p in arr.dtype.names and arr.dtype[p].kind != "f"), None)
+    if stored is not None:
+        raise SplatzooError(f"{path}: {stored} is stored as {ply_type_name(arr.dtype[stored])} but holds a "
+                            f"float parameter ({pname!r}); the file was not written by splatzoo export or is "
+                            "damaged. Export the model again")
+
+
+# --- sources: a run folder, a model .pt, a model .ply ---------------------------------------------------------
+
+def load_source(source):
+    """(model, the file it was read from) of a run folder (its trained model.pt), a model .pt or a model .ply."""
     from .runs import Run
     from .zoo import load_model
 
-    run = Path(run)
-    if run.is_file():
-        _check_export_target(run, Path(out))
-        return save_ply(load_model(run), out)
-    if not run.exists():
-        raise SplatzooError(f"{run} does not exist; pass a run directory written by `splatzoo train` or a model .pt")
-    r = Run(run)
-    _check_export_target(r.model_path, Path(out))
-    return save_ply(r.model(), out)
+    source = Path(source)
+    try:
+        is_file, exists = source.is_file(), source.exists()
+    except OSError as e:
+        raise SplatzooError(f"{str(source)[:200]} cannot be looked up ({e.strerror or e})") from None
+    if is_file:
+        with open(source, "rb") as f:
+            magic = f.read(3)
+        if magic == b"ply":
+            return load_ply(source), source
+        return load_model(source), source
+    if not exists:
+        raise SplatzooError(f"{source} does not exist; pass a run directory written by `splatzoo train`, a model .pt "
+                            "or a model .ply")
+    run = Run(source)
+    return run.model(), run.model_path
 
 
-def _check_export_target(model_path: Path, out: Path) -> None:
-    """`--out RUN/model.pt` would replace the trained model by a PLY: export writes only files named .ply, and never
-    over the model it reads."""
-    if out.suffix.lower() != ".ply" and not out.is_dir():  # a folder gets save_ply's own "is a folder" message
-        suggestion = out.with_suffix(".ply") if out.name and out.suffix else out.parent / f"{out.name or 'model'}.ply"
-        raise SplatzooError(f"export writes a PLY file, so --out must end in .ply; got {out}. Name the file e.g. "
-                            f"{suggestion}")
-    same = out.resolve() == model_path.resolve()
+# --- the exporter registry -------------------------------------------------------------------------------------
+
+@dataclass
+class ExporterSpec:
+    """An export format. `fn(source, out, *, progress=None, **options) -> Path` writes `out` (atomically) from
+    `source`, a run folder or a model file (.pt or .ply). `options` is a dataclass of the format's options (or None:
+    none). Built-ins whose code lives in an optional module give `fn` and `options` as "module:name" strings, imported
+    when the format is first used."""
+
+    name: str
+    fn: Callable[..., Path] | str
+    options: type | str | None = None
+    description: str = ""
+    suffixes: tuple[str, ...] = (".ply",)
+    extra: dict = field(default_factory=dict)
+
+    def _resolve(self, target):
+        if not isinstance(target, str):
+            return target
+        import importlib
+
+        module, _, attr = target.partition(":")
+        try:
+            loaded = importlib.import_module(module)
+        except ModuleNotFoundError as e:
+            if e.name and module.startswith(e.name):
+                raise SplatzooError(f"export format {self.name!r} needs {module}, which this splatzoo installation "
+                                    "does not have; update splatzoo (or pick another --format, see "
+                                    "`splatzoo export --list`)") from None
+            raise
+        try:
+            return getattr(loaded, attr)
+        except AttributeError:
+            raise SplatzooError(f"export format {self.name!r}: {module} has no {attr}; this splatzoo installation "
+                                "is incomplete, update it") from None
+
+    def function(self) -> Callable[..., Path]:
+        return self._resolve(self.fn)
+
+    def options_class(self) -> type | None:
+        return self._resolve(self.options)
+
+
+def _validate_exporter_spec(obj: Any, name: str) -> ExporterSpec:
+    if callable(obj) and not isinstance(obj, (ExporterSpec, type)):
+        obj = obj()
+    if not isinstance(obj, ExporterSpec):
+        raise PluginError(f"entry point must name a splatzoo.export.ExporterSpec, got {type(obj).__name__}")
+    if obj.name != name:
+        raise PluginError(f"entry point name {name!r} differs from the spec's name {obj.name!r}")
+    return obj
+
+
+EXPORTERS: Registry[ExporterSpec] = Registry("export format", entry_point_group="splatzoo.exporters",
+                                             validate=_validate_exporter_spec)
+
+
+def register_exporter(spec: ExporterSpec) -> ExporterSpec:
+    return EXPORTERS.register(spec.name, spec)
+
+
+def list_formats() -> list[str]:
+    return EXPORTERS.names()
+
+
+_BOOLS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
+
+
+def export_options(spec: ExporterSpec, options: dict):
+    """The format's options dataclass with `options` (strings from the command line, or values) applied."""
+    cls = spec.options_class()
+    if cls is None:
+        if options:
+            raise SplatzooError(f"export format {spec.name!r} has no options; got {', '.join(options)}")
+        return None
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = [k for k in options if k not in fields]
+    if unknown:
+        from .registry import closest
+
+        raise SplatzooError(f"export format {spec.name!r} has no option(s) {', '.join(unknown)}; its options are: "
+                            f"{', '.join(fields) or 'none'}" + closest(unknown[0], fields))
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for key, value in options.items():
+        typ = hints.get(key)
+        args = [a for a in typing.get_args(typ) if a is not type(None)]
+        if args and len(args) == 1 and type(None) in typing.get_args(typ):  # Optional[X]
+            if isinstance(value, str) and value.strip().lower() in ("none", "null", ""):
+                values[key] = None
+                continue
+            typ = args[0]
+        try:
+            if typ is bool:
+                if isinstance(value, bool):
+                    values[key] = value
+                elif isinstance(value, str) and value.strip().lower() in _BOOLS:
+                    values[key] = _BOOLS[value.strip().lower()]
+                else:
+                    raise ValueError
+            elif typ in (int, float):
+                if isinstance(value, bool):
+                    raise ValueError
+                converted = typ(value) if typ is float else int(str(value).strip())
+                if typ is float and not math.isfinite(converted):
+                    raise ValueError
+                values[key] = converted
+            elif typ is str:
+                values[key] = str(value)
+            else:
+                values[key] = value
+        except (TypeError, ValueError, OverflowError):
+            raise SplatzooError(f"export format {spec.name!r}: option {key} expects "
+                                f"{getattr(typ, '__name__', typ)}, got {value!r}") from None
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as e:
+        raise SplatzooError(f"export format {spec.name!r}: {e}") from None
+
+
+def describe_format(spec: ExporterSpec) -> str:
+    """One line per option: name, type, default, help (or a note that the format's module is missing)."""
+    try:
+        cls = spec.options_class()
+    except SplatzooError as e:
+        return f"    (unavailable: {e})"
+    if cls is None:
+        return "    (no options)"
+    hints = typing.get_type_hints(cls)
+    rows = []
+    for f in dataclasses.fields(cls):
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        typ = hints.get(f.name, str)
+        rows.append(f"    {f.name}={getattr(typ, '__name__', str(typ)).upper()}  {f.metadata.get('help', '')} "
+                    f"(default {default})")
+    return "\n".join(rows) if rows else "    (no options)"
+
+
+def parse_format(text: str) -> tuple[ExporterSpec, object]:
+    """'baked:max_splats=16000' -> (the spec, its options dataclass); the model-option syntax."""
+    from .options import model_spec
+
+    name, options = model_spec(text)
+    spec = EXPORTERS.get(name)
+    return spec, export_options(spec, options)
+
+
+def _suffix_ok(out: Path, suffixes: tuple[str, ...]) -> bool:
+    return any(out.name.lower().endswith(s.lower()) and len(out.name) > len(s) for s in suffixes)
+
+
+def check_export_target(spec: ExporterSpec, out: Path, model_path: Path | None = None) -> None:
+    """`--out RUN/model.pt` would replace the trained model: export writes only files with the format's suffix, and
+    never over the file it reads."""
+    if spec.suffixes and not _suffix_ok(out, spec.suffixes) and not out.is_dir():
+        stem = out.name[:-len(out.suffix)] if out.suffix else (out.name or "model")
+        suggestion = out.parent / f"{stem}{spec.suffixes[0]}"
+        raise SplatzooError(f"export writes a {spec.suffixes[0][1:].upper()} file for --format {spec.name}, so --out "
+                            f"must end in {' or '.join(spec.suffixes)}; got {out}. Name the file e.g. {suggestion}")
+    if model_path is None:
+        return
+    same = out.resolve() == Path(model_path).resolve()
     if not same and out.exists():
         try:
             same = out.samefile(model_path)
@@ -310,4 +628,109 @@ def _check_export_target(model_path: Path, out: Path) -> None:
             same = False
     if same:
         raise SplatzooError(f"refusing to export onto the model being read ({model_path}); choose another --out, "
-                            f"e.g. {model_path.with_suffix('.ply')}")
+                            f"e.g. {Path(model_path).with_name(Path(model_path).stem + '-export' + spec.suffixes[0])}")
+
+
+def _source_file(source: Path) -> Path | None:
+    """The file a source will be read from (for the never-over-the-input check), without loading it."""
+    source = Path(source)
+    try:
+        if source.is_dir():
+            return source / "model.pt"
+        return source if source.exists() else None
+    except OSError:
+        return None
+
+
+def export(source, out, format: str = "ply", *, progress=None, **options) -> Path:
+    """Export the model of `source` (a run folder, a model .pt or .ply) to `out` in `format` (a name, or a name with
+    options: 'baked:max_splats=16000'); keyword `options` add to those. Returns the written path."""
+    from .options import model_spec
+
+    name, inline = model_spec(format)
+    spec = EXPORTERS.get(name)
+    opts = export_options(spec, {**inline, **options})
+    out = Path(out)
+    check_export_target(spec, out, _source_file(Path(source)))
+    kwargs = dataclasses.asdict(opts) if opts is not None else {}
+    return Path(spec.function()(Path(source), out, progress=progress, **kwargs))
+
+
+# --- built-in formats ------------------------------------------------------------------------------------------
+
+@dataclass
+class PlyOptions:
+    ascii: bool = field(default=False, metadata={"help": "write an ASCII PLY (larger, slower; to read by eye)"})
+
+
+def export_ply(source, out, *, progress=None, ascii: bool = False) -> Path:
+    """The `ply` format: the layout of the module docstring, which `load_ply` reads back exactly."""
+    out = Path(out)
+    model, model_path = load_source(source)
+    check_export_target(EXPORTERS.get("ply"), out, model_path)
+    path = save_ply(model, out, text=ascii)
+    if progress:
+        progress(f"wrote {model.num_primitives} {model.name} primitives to {path}")
+    return path
+
+
+def export_run(run, out) -> Path:
+    """Export the trained model of a run directory, or a model .pt (or .ply) file, to the PLY `out`."""
+    out = Path(out)
+    check_export_target(EXPORTERS.get("ply"), out, _source_file(Path(run)))
+    return export_ply(run, out)
+
+
+@dataclass
+class SpzOptions:
+    version: int = field(default=4, metadata={"help": "SPZ version to write, 3 or 4"})
+
+    def __post_init__(self):
+        if self.version not in (3, 4):
+            raise ValueError(f"version must be 3 or 4, got {self.version}")
+
+
+@dataclass
+class SogOptions:
+    sh_iterations: int = field(default=10, metadata={"help": "k-means iterations of the SH compression"})
+    gpu: str = field(default="cpu", metadata={"help": "device of the compression: cpu, or a GPU adapter index "
+                                                      "(see `splat-transform --list-gpus`)"})
+
+    def __post_init__(self):
+        if self.sh_iterations < 1:
+            raise ValueError(f"sh_iterations must be at least 1, got {self.sh_iterations}")
+        if self.gpu != "cpu" and not str(self.gpu).isdigit():
+            raise ValueError(f"gpu must be cpu or an adapter index, got {self.gpu!r}")
+
+
+def _converted(out_format: str, suffix: str, args: Callable[[Any], list[str]]):
+    def convert(source, out, *, progress=None, **options) -> Path:
+        from .splat_tools import convert_ply
+
+        out = Path(out)
+        model, model_path = load_source(source)
+        check_export_target(EXPORTERS.get(out_format), out, model_path)
+        return convert_ply(model, out, suffix=suffix, args=args(options), progress=progress)
+    return convert
+
+
+register_exporter(ExporterSpec(
+    "ply", export_ply, PlyOptions, "the 3DGS/2DGS PLY every splat tool reads; splatzoo's own properties (Gabor "
+    "waves, plugin parameters) ride along so load_ply restores the model exactly", (".ply",)))
+register_exporter(ExporterSpec(
+    "spz", _converted("spz", ".spz", lambda o: ["--spz-version", str(o.get("version", 4))]), SpzOptions,
+    "Niantic's compressed splats (about 10x smaller), through PlayCanvas splat-transform; surfels as flat Gaussians, "
+    "Gabor waves as their mean colour", (".spz",)))
+register_exporter(ExporterSpec(
+    "sog", _converted("sog", ".sog", lambda o: ["-g", str(o.get("gpu", "cpu")), "-i", str(o.get("sh_iterations", 10))]),
+    SogOptions, "PlayCanvas SOG (WebP textures in one file, about 15-20x smaller), through splat-transform; "
+    "Gabor waves as their mean colour", (".sog",)))
+register_exporter(ExporterSpec(
+    "compressed-ply", _converted("compressed-ply", ".compressed.ply", lambda o: []), None,
+    "PlayCanvas / SuperSplat compressed PLY (chunked, quantised), through splat-transform", (".compressed.ply",)))
+register_exporter(ExporterSpec(
+    "baked", "splatzoo.bake:export_baked", "splatzoo.bake:BakeOptions",
+    "wave models baked into plain 2DGS surfels in a standard PLY, for viewers that know no Gabor waves", (".ply",)))
+register_exporter(ExporterSpec(
+    "mesh-glb", "splatzoo.mesh_texture:export_textured_mesh", "splatzoo.mesh_texture:TexturedMeshOptions",
+    "a textured triangle mesh (glTF binary) extracted from the model", (".glb",)))

@@ -57,10 +57,12 @@ def test_2dgs_layout_is_what_2dgs_tools_read(tmp_path):
     model = random_model("2dgs", n=50, sh_degree=3)
     arr, comments = read_ply_vertices(save_ply(model, tmp_path / "m.ply"))
     expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-                + ["opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"])
+                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
     assert list(arr.dtype.names) == expected
     assert all(arr.dtype[k] == np.dtype("<f4") for k in expected)
     assert "splatzoo model 2dgs" in comments and 'splatzoo config {"sh_degree":3}' in comments
+    # the surfel's thickness: log(0), which splat-transform, Spark and GaussianSplats3D read as exactly flat
+    assert np.all(arr["scale_2"] == -np.inf) and "SplatRenderMode: 2dgs" in comments
     p = {k: v.detach().numpy() for k, v in model.named_parameters()}
     assert np.array_equal(np.stack([arr["x"], arr["y"], arr["z"]], 1), p["means"])
     assert np.array_equal(arr["opacity"], p["logit_opacity"])                     # logit, as 3DGS
@@ -84,7 +86,7 @@ def test_gabor_layout_names_its_waves(tmp_path, color_param, colors):
     for prefix, count in ((colors[0], 3), (colors[1], 3), ("gabor_weight_", 3), ("gabor_freq_", 3),
                           ("gabor_phase_", 3)):
         assert [n for n in names if n.startswith(prefix)] == [f"{prefix}{i}" for i in range(count)]
-    assert {"opacity", "scale_0", "scale_1", "rot_3"} <= set(names)
+    assert names[9:17] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     assert "splatzoo model gabor" in comments
     config = [c for c in comments if c.startswith("splatzoo config ")]
     assert len(config) == 1 and json.loads(config[0][len("splatzoo config "):]) == dataclasses.asdict(model.config)
