@@ -42,7 +42,7 @@ SIGNIFICANT = 0.01      # a wave shapes the split when opacity x amplitude (larg
 ORBIT_VIEWS = 32        # no dataset: the bake's cameras, on a sphere around the model ...
 ORBIT_SIZE = 256        # ... of this many pixels square ...
 ORBIT_FOV = 40.0        # ... and this field of view (degrees)
-TARGET_CACHE_BYTES = 1 << 30  # source renders kept in memory up to this; beyond it they are rendered when needed
+TARGET_CACHE_BYTES = 1 << 29  # source renders kept in memory up to this; beyond it they are rendered when needed
 
 
 @dataclass

@@ -90,6 +90,16 @@ def test_plain_model_passes_through():
     assert out is plain and report["splats"] == 4
 
 
+def test_view_dependent_colour_is_kept():
+    model = create_model("gabor", torch.rand(20, 3), torch.rand(20, 3), n_waves=2, sh_degree=1)
+    with torch.no_grad():
+        model.sh_rest.normal_(0, 0.1)
+        model.logit_opacity.fill_(2.0)
+    out, _ = bake_model(model, _cameras(2, 24), BakeOptions(steps=2, views=2, eval_views=1))
+    assert out.config.sh_degree == 1 and out.sh_rest.shape[1:] == (3, 3)
+    assert out.sh_rest.abs().sum() > 0
+
+
 def test_export_baked_writes_a_ply_from_a_model_file(tmp_path):
     from splatzoo import save_model
 
