@@ -40,8 +40,8 @@ def surfel_model(means, normals, sigma, opacity, color):
 
 def test_splats_land_on_their_pixels(browser, tmp_path):
     """Two small surfels placed to project at known sub-pixel positions of a turned, non-square camera with an
-    off-centre principal point and fx != fy: in each viewer their centroids are where splatzoo puts them, and the
-    background colour comes back exactly."""
+    off-centre principal point and fx != fy: in each viewer their centroids are where splatzoo puts them, the
+    background colour comes back exactly, and the peak colour follows the viewer's dilation rule."""
     W, H = 80, 60
     base = Camera.look_at([1.0, -0.7, -3.5], [0.1, 0.2, 0.0], width=W, height=H, fov_deg=50)
     K = base.K.clone().double()
@@ -61,25 +61,44 @@ def test_splats_land_on_their_pixels(browser, tmp_path):
     bv.ensure_third_scale(ply)
     bg = (0.2, 0.4, 0.6)
 
-    def centroids(img):
+    def centroids_and_peaks(img):
         weight = np.abs(img - np.array(bg)).sum(-1)
         ys, xs = np.mgrid[0:H, 0:W] + 0.5  # pixel centres
-        out = []
+        centroids, peaks = [], []
         for u, v in targets:
-            w = weight * ((np.abs(xs - u) < 8) & (np.abs(ys - v) < 8))
-            out.append(((w * xs).sum() / w.sum(), (w * ys).sum() / w.sum()))
-        return np.array(out)
+            near = (np.abs(xs - u) < 8) & (np.abs(ys - v) < 8)
+            w = weight * near
+            centroids.append(((w * xs).sum() / w.sum(), (w * ys).sum() / w.sum()))
+            peaks.append(img[..., 1][near].max())
+        return np.array(centroids), np.array(peaks)
 
+    # the brightest pixel centre lies 0.25 px from each surfel's centre, along x for the first (sigma 1.5 px), along y
+    # for the second (sigma 1.65 px: fy = 1.1 fx); green there: bg (1 - a) + 0.9 a, with a by each renderer's rule
+    var = np.array([1.5 ** 2, 1.65 ** 2])
+    other = var[::-1]
+
+    def green(a):
+        return bg[1] * (1 - a) + 0.9 * a
+
+    dilated = var + 0.3  # both viewers add 0.3 px^2 to the screen covariance
+    expected = {
+        "splatzoo": green(0.9 * np.exp(-0.5 * 0.25 ** 2 / var)),
+        "gs3d": green(0.9 * np.exp(-0.5 * 0.25 ** 2 / dilated)),  # opacity kept (3DGS's rule)
+        "spark": green(0.9 * np.sqrt(var * other / (dilated * (other + 0.3)))  # opacity rescaled (Mip-Splatting's)
+                       * np.exp(-0.5 * 0.25 ** 2 / dilated)),
+    }
     with torch.no_grad():
         ref = model.render(cam, background=torch.tensor(bg), backend="cpu").rgb.double().numpy()
-    assert np.abs(centroids(ref) - np.array(targets)).max() < 0.01
+    c, peaks = centroids_and_peaks(ref)
+    assert np.abs(c - np.array(targets)).max() < 0.01
+    assert np.abs(peaks - expected["splatzoo"]).max() < 0.002, peaks
     for viewer in bv.VIEWERS:
         img = browser.render(ply, cam, viewer=viewer, background=bg)
-        c = centroids(img)
+        c, peaks = centroids_and_peaks(img)
         assert np.abs(c - np.array(targets)).max() < 0.1, (viewer, c)  # Spark stores centres as float16
         far = (slice(0, 20), slice(0, 10))
-        assert np.abs(img[far] - np.array(bg)).max() <= 0.5 / 255 + 1e-9, viewer
-        assert abs(img[..., 1].max() - ref[..., 1].max()) < 0.06, viewer  # the colour is not colour-managed
+        assert np.abs(img[far] - np.array(bg)).max() <= 0.5 / 255 + 1e-9, viewer  # no colour management
+        assert np.abs(peaks - expected[viewer]).max() < 0.01, (viewer, peaks, expected[viewer])
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,176 @@
+"""splatzoo PLY exports in third-party three.js splat viewers (Spark, GaussianSplats3D) in headless Chromium.
+
+    python benchmarks/bench_browser_viewers.py [--out DIR] [--scene sweater] [--size 128] [--views 24]
+                                               [--iterations 1000] [--surfels 2000]
+
+Trains (once; runs are kept in --out) a 2dgs model with and without the pixel-footprint filter (`antialias`, the
+training default) and a gabor model on a synthetic scene with a white backdrop, at a fixed surfel count, exports each
+with `splatzoo.export.save_ply`, renders every test view in each viewer with several settings and prints the mean
+PSNR of the viewer's frame against splatzoo's own render (`model.render`) and against the ground truth.
+
+Viewer settings (tests/browser/render.js passes them through):
+  spark default        SparkRenderer defaults: +0.3 px^2 on the screen covariance, opacity rescaled by
+                       sqrt(det / det') (Mip-Splatting's rule), radial sort
+  spark blur 0.1       blurAmount 0.1: the same rule with splatzoo's anti-aliasing footprint (0.1 px^2)
+  spark no blur        blurAmount 0
+  spark 2DGS           enable2DGS: a splat with a zero scale (our scale_2 = -inf) is drawn as a flat quad in 3D
+                       (exact perspective, no screen filter)
+  gs3d default         DropInViewer defaults: +0.3 px^2 (kernel2DSize), no opacity change (3DGS's rule)
+  gs3d aa              antialiased: +0.3 px^2 with the opacity rescaled (Mip-Splatting's rule)
+  gs3d aa 0.1          antialiased, kernel2DSize 0.1: splatzoo's footprint
+  gs3d 2D mode         splatRenderMode TwoD (2DGS ray-splat rendering)
+PLY variants for the viewers' default dilation (see `dilation_compensated`), rendered with the default settings:
+  ... +shrink          each surfel's variance less (0.3 - f) px^2 at its median training-camera scale, f = 0.1 for an
+                       anti-aliased model (its footprint), 0 otherwise; opacity times the footprint's gain
+                       sqrt(s0 s1 / ((s0 + f)(s1 + f))): for 3DGS-rule viewers (GS3D, SuperSplat/PlayCanvas, SIBR)
+  ... +shrink+opacity  the same shrink, and opacity times sqrt(s0 s1 / (s0' s1')) (clamped to 0.99): undoes
+                       Spark's Mip-Splatting rescale
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+
+MODELS = {  # label: (model, model options, antialias)
+    "2dgs": ("2dgs", {}, True),
+    "2dgs (no antialias)": ("2dgs", {}, False),
+    "gabor": ("gabor", {}, True),
+}
+SETTINGS = [  # label, viewer, options, ply variant
+    ("spark default", "spark", {}, "plain"),
+    ("spark blur 0.1", "spark", {"blurAmount": 0.1}, "plain"),
+    ("spark no blur", "spark", {"blurAmount": 0.0}, "plain"),
+    ("spark z-sort", "spark", {"sortRadial": False}, "plain"),
+    ("spark 2DGS", "spark", {"enable2DGS": True}, "plain"),
+    ("spark default +shrink+opacity", "spark", {}, "mip"),
+    ("gs3d default", "gs3d", {}, "plain"),
+    ("gs3d aa", "gs3d", {"antialiased": True}, "plain"),
+    ("gs3d aa 0.1", "gs3d", {"antialiased": True, "kernel2DSize": 0.1}, "plain"),
+    ("gs3d 2D mode", "gs3d", {"splatRenderMode": 1}, "plain"),
+    ("gs3d default +shrink", "gs3d", {}, "3dgs"),
+]
+VIEWER_DILATION = 0.3  # px^2 both viewers add by default (Spark blurAmount, GS3D kernel2DSize)
+PIXEL_FILTER = 0.1     # px^2, splatzoo's anti-aliasing footprint (splatzoo.rasterizers.common.PIXEL_FILTER)
+
+
+def pixel_size_sq(means: torch.Tensor, cameras) -> torch.Tensor:
+    """[N] median over `cameras` of (depth / focal)^2: a surfel's world area per pixel^2 where it was trained."""
+    per = []
+    for cam in cameras:
+        w2c = cam.world_to_camera.double()
+        z = means.double() @ w2c[2, :3] + w2c[2, 3]
+        f = math.sqrt(float(cam.K[0, 0]) * float(cam.K[1, 1]))
+        per.append(torch.where(z > 0.05, (z / f) ** 2, torch.nan))
+    return torch.nanmedian(torch.stack(per), dim=0).values
+
+
+def dilation_compensated(src: Path, dst: Path, cameras, antialias: bool, undo_opacity_rescale: bool) -> Path:
+    """A copy of PLY `src` whose default viewer dilation (+0.3 px^2) lands on what splatzoo renders: each scale's
+    variance less (0.3 - footprint) px^2 at the surfel's training-camera scale (floored at a quarter of it), and the
+    opacity times the footprint's gain, and (Spark's rule) times sqrt(s0 s1 / (s0' s1'))."""
+    from plyfile import PlyData, PlyElement
+
+    ply = PlyData.read(str(src))
+    v = ply["vertex"].data.copy()
+    means = torch.from_numpy(np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64))
+    px2 = pixel_size_sq(means, cameras).numpy()
+    footprint = PIXEL_FILTER if antialias else 0.0
+    s2 = [np.exp(2 * v[f"scale_{i}"].astype(np.float64)) / px2 for i in (0, 1)]  # variance in px^2
+    new = [np.maximum(s - (VIEWER_DILATION - footprint), 0.25 * s) for s in s2]
+    gain = np.sqrt(s2[0] * s2[1] / ((s2[0] + footprint) * (s2[1] + footprint)))
+    if undo_opacity_rescale:
+        gain = gain * np.sqrt(s2[0] * s2[1] / (new[0] * new[1]))
+    opacity = 1 / (1 + np.exp(-v["opacity"].astype(np.float64)))
+    opacity = np.clip(opacity * gain, 1e-6, 0.99)
+    v["opacity"] = np.log(opacity / (1 - opacity)).astype(np.float32)
+    for i in (0, 1):
+        v[f"scale_{i}"] = (0.5 * np.log(new[i] * px2)).astype(np.float32)
+    PlyData([PlyElement.describe(v, "vertex")], text=False, comments=ply.comments).write(str(dst))
+    return dst
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="bench_browser_viewers", help="folder for the dataset, runs, PLY files, results")
+    ap.add_argument("--scene", default="sweater")
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--views", type=int, default=24)
+    ap.add_argument("--iterations", type=int, default=1000)
+    ap.add_argument("--surfels", type=int, default=2000)
+    ap.add_argument("--models", default=",".join(MODELS), help="comma-separated labels of: " + ", ".join(MODELS))
+    args = ap.parse_args(argv)
+
+    import browser_viewers as bv
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.export import save_ply
+    from splatzoo.runs import load_run, train
+    from splatzoo.training import TrainConfig
+
+    reason = bv.missing()
+    if reason:
+        print(reason, file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = out / "data"
+    if not data.exists():
+        make_synthetic_scene(args.scene, data, views=args.views, width=args.size, height=args.size,
+                             background=(1, 1, 1))
+    print(f"{args.scene}, {args.size}x{args.size}, {args.views} views, {args.surfels} surfels fixed, "
+          f"{args.iterations} iterations, white backdrop; PSNR (dB) averaged over the test views")
+    results = {}
+    with bv.BrowserViewers() as browser:
+        for label in args.models.split(","):
+            name, options, antialias = MODELS[label]
+            run = out / "runs" / label.replace(" ", "_").replace("(", "").replace(")", "")
+            if not (run / "model.pt").exists():
+                t = time.time()
+                train(data, name, options, TrainConfig(iterations=args.iterations, backend="cpu",
+                                                       num_primitives=args.surfels, densify=False,
+                                                       antialias=antialias),
+                      run, progress=False, evaluate_at_end=False, overwrite=True)
+                print(f"trained {label} in {time.time() - t:.0f} s")
+            model, scene, _ = load_run(run, "cpu")
+            plys = {"plain": save_ply(model, out / f"{run.name}.ply")}
+            bv.ensure_third_scale(plys["plain"])
+            cams = [v.camera for v in scene.train]
+            plys["3dgs"] = dilation_compensated(plys["plain"], out / f"{run.name}.3dgs.ply", cams, antialias, False)
+            plys["mip"] = dilation_compensated(plys["plain"], out / f"{run.name}.mip.ply", cams, antialias, True)
+            bg = tuple(float(c) for c in model.background) if model.background is not None else (1.0, 1.0, 1.0)
+            rows = {s[0]: [] for s in SETTINGS}
+            own_gt = []
+            for view in scene.test:
+                gt = view.image_float().double().numpy()
+                with torch.no_grad():
+                    own = model.render(view.camera, background=torch.tensor(bg), backend="cpu").rgb.clamp(0, 1)
+                own = own.double().numpy()
+                own_gt.append(bv.psnr(own, gt))
+                for setting, viewer, opts, variant in SETTINGS:
+                    img = browser.render(plys[variant], view.camera, viewer=viewer, background=bg, options=opts)
+                    rows[setting].append((bv.psnr(img, own), bv.psnr(img, gt)))
+            results[label] = {"splatzoo_vs_gt": float(np.mean(own_gt)),
+                              **{k: {"vs_splatzoo": float(np.mean([a for a, _ in r])),
+                                     "vs_gt": float(np.mean([b for _, b in r]))} for k, r in rows.items()}}
+            print(f"\n{label} (antialias {antialias}, {model.num_primitives} surfels): splatzoo vs ground truth "
+                  f"{results[label]['splatzoo_vs_gt']:.2f}")
+            print("| viewer, settings | vs splatzoo | vs ground truth | minus splatzoo's |")
+            print("|---|---|---|---|")
+            for k in rows:
+                r = results[label][k]
+                print(f"| {k} | {r['vs_splatzoo']:.2f} | {r['vs_gt']:.2f} | "
+                      f"{r['vs_gt'] - results[label]['splatzoo_vs_gt']:+.2f} |", flush=True)
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
