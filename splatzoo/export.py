@@ -238,13 +238,13 @@ def _present_width(name: str, names: list[str]) -> int:
     return width
 
 
-def _builtin_properties() -> dict[str, str]:
-    """Property name -> built-in model, for the properties a built-in splatzoo model writes beyond the 3DGS layout
-    (at its default config). A file holding them without a header was written by splatzoo and lost its header."""
+def _builtin_properties() -> dict[str, list[str]]:
+    """Property name -> the built-in models that write it, for the properties beyond the 3DGS layout (at each model's
+    default config). A file holding them without a header was written by splatzoo and lost its header."""
     from .registry import MODELS
     from .zoo import create_model
 
-    out = {}
+    out: dict[str, list[str]] = {}
     for entry in MODELS.entries():
         if entry.origin != "built-in" or entry.broken:
             continue
@@ -255,7 +255,7 @@ def _builtin_properties() -> dict[str, str]:
         for pname, value in per.items():
             for prop in _property_names(pname, tuple(value.shape[1:])):
                 if prop not in _STANDARD and not prop.startswith("f_rest_"):
-                    out.setdefault(prop, entry.name)
+                    out.setdefault(prop, []).append(entry.name)
     return out
 
 
@@ -267,9 +267,9 @@ def _standard_model(path, names: list[str]) -> tuple[str, dict, list[str]]:
     ours = _builtin_properties()
     found = [k for k in names if k.startswith("gabor_") or k in ours]
     if found:
-        model = ours.get(found[0], "gabor")
+        models = ", ".join(repr(m) for m in ours.get(found[0], ["gabor"]))
         raise SplatzooError(f"{path} holds the properties {', '.join(found[:4])}{' ...' if len(found) > 4 else ''} of "
-                            f"the splatzoo model {model!r} but no 'comment splatzoo model' header, so its model (and "
+                            f"the splatzoo model {models} but no 'comment splatzoo model' header, so its model (and "
                             f"its options) cannot be told; loading it as 2dgs would drop them silently. {fix}")
     missing = [k for k in _STANDARD if k not in names]
     if missing:
