@@ -227,6 +227,19 @@ _SKIP_MISSING = typer.Option(False, "--skip-missing", help="leave out the frames
                              "image is missing (the count and names are printed) instead of stopping")
 
 
+_DATA_FOR_FILE = typer.Option(None, "--data", "-d", help="dataset to use when RUN is a model file (.ply, .pt), which "
+                              "records none", callback=_path_arg)
+
+
+def _model_file(run: Path, data: Optional[Path]) -> bool:
+    """Whether RUN names a model file (then --data is needed); --data with a run folder is an error."""
+    if run.is_file():
+        return True
+    if data is not None:
+        raise typer.BadParameter(f"--data is for a model file; the run {run} is scored on its own dataset")
+    return False
+
+
 _TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "num_primitives", "max_primitives",
                  "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc", "antialias",
                  "random_downscale")
@@ -284,6 +297,10 @@ def train_command(
     viewer_port: int = typer.Option(8080, "--viewer-port", help="port of the live viewer"),
     viewer_host: str = typer.Option("127.0.0.1", "--viewer-host", help="address the live viewer listens on"),
     skip_missing: bool = _SKIP_MISSING,
+    init_from: Optional[Path] = typer.Option(None, "--init-from", metavar="FILE", callback=_path_arg,
+                                             help="start from the surfels of a model file (.ply from `splatzoo export` "
+                                             "or another 2DGS/3DGS tool, or a .pt) instead of the dataset's points; "
+                                             "the model and its options are the file's"),
 ) -> None:
     """Train a model on a dataset. Model options follow the model name, e.g. `--model gabor --n-waves 8`.
 
@@ -294,6 +311,10 @@ def train_command(
 
     given = _given(ctx)
     model, inline_options = model_spec(model)
+    if init_from is not None and "model" not in given and not resume:  # the file's model
+        from .runs import initial_model
+
+        model = initial_model(init_from).name
     out = out or Path("runs") / model
     values = {k: v for k, v in ctx.params.items() if k in _TRAIN_FIELDS}
     watch = None
@@ -309,7 +330,8 @@ def train_command(
         scene_options = _scene_options(resolution, max_width, test_every, background, white_background)
         if skip_missing:
             scene_options["skip_missing"] = True
-        result = _train(ctx, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch)
+        result = _train(ctx, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch,
+                        init_from)
     except BaseException:
         if watch is not None:
             watch.viewer.stop()
@@ -323,7 +345,8 @@ def train_command(
             typer.echo("viewer stopped")
 
 
-def _train(ctx, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch):
+def _train(ctx, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch,
+           init_from=None):
     from .options import parse_model_args
     from .runs import Run, train
     from .training import TrainConfig
@@ -338,13 +361,13 @@ def _train(ctx, data, model, inline_options, out, resume, overwrite, given, valu
                                       if {"resolution": {"resolution"}, "max_width": {"max_width"},
                                           "test_every": {"test_every"}, "skip_missing": {"skip_missing"},
                                           "background": {"background", "white_background"}}[k] & given},
-                       watch=watch)
+                       watch=watch, init_from=init_from)
     else:
         if data is None:
             raise typer.BadParameter("give the dataset folder DATA (only --resume can take it from the run)")
         result = train(data, model, {**inline_options, **parse_model_args(model, list(ctx.args))},
                        TrainConfig(**values), out,
-                       overwrite=overwrite, scene_options=scene_options, watch=watch)
+                       overwrite=overwrite, scene_options=scene_options, watch=watch, init_from=init_from)
     return result
 
 
@@ -364,8 +387,9 @@ def _fmt(value, spec: str) -> str:
 
 @app.command("eval")
 def eval_command(
-    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`",
-                               callback=_path_arg),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`, or a model file "
+                               "(.ply, .pt) with --data", callback=_path_arg),
+    data: Optional[Path] = _DATA_FOR_FILE,
     backend: str = _BACKEND,
     lpips_net: str = typer.Option("vgg", "--lpips-net", help="vgg or alex"),
     lpips_convention: str = typer.Option("3dgs", "--lpips-convention",
@@ -376,11 +400,21 @@ def eval_command(
                                        "elsewhere, the run is only read (read-only media)", callback=_path_arg),
     skip_missing: bool = _SKIP_MISSING,
 ) -> None:
-    """Evaluate a trained run on its test views; prints a table and writes RUN/metrics.json."""
+    """Evaluate a trained run on its test views; prints a table and writes RUN/metrics.json. A model file (.ply from
+    `splatzoo export` or another 2DGS/3DGS tool, or a .pt) is scored on the test views of --data."""
     from .evaluate import metrics_table, parse_scales, scales_table
-    from .runs import evaluate_run
+    from .runs import evaluate_file, evaluate_run
 
     scales = parse_scales(scale) if scale is not None else ()
+    if _model_file(run, data):
+        metrics = evaluate_file(run, data, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention,
+                                scales=scales, out=out, scene_options={"skip_missing": True} if skip_missing else {})
+        typer.echo(metrics_table(metrics))
+        if scales:
+            typer.echo(scales_table(metrics))
+        if out is not None:
+            typer.echo(f"wrote {out}")
+        return
     metrics = evaluate_run(run, backend=backend, lpips_net=lpips_net, lpips_convention=lpips_convention,
                            scales=scales, out=out, skip_missing=skip_missing)
     typer.echo(metrics_table(metrics))
@@ -391,8 +425,9 @@ def eval_command(
 
 @app.command("render")
 def render_command(
-    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`",
-                               callback=_path_arg),
+    run: Path = typer.Argument(..., metavar="RUN", help="run directory written by `splatzoo train`, or a model file "
+                               "(.ply, .pt) with --data", callback=_path_arg),
+    data: Optional[Path] = _DATA_FOR_FILE,
     split: str = typer.Option("test", "--split", help="test or train views"),
     video: bool = typer.Option(False, "--video", help="also write an orbit video (renders/orbit.webm, VP9: plays in browsers)"),
     frames: int = typer.Option(60, "--frames", min=1, max=100000, help="frames of the orbit video"),
@@ -401,9 +436,15 @@ def render_command(
                                        "elsewhere, the run is only read (read-only media)", callback=_path_arg),
     skip_missing: bool = _SKIP_MISSING,
 ) -> None:
-    """Render a trained run's views to PNG (and an orbit video)."""
-    from .runs import render_run
+    """Render a trained run's views to PNG (and an orbit video); a model file (.ply, .pt) from the views of --data
+    (into --out, default <file>_renders beside it)."""
+    from .runs import render_file, render_run
 
+    if _model_file(run, data):
+        paths = render_file(run, data, split=split, video=video, backend=backend, frames=frames, out=out,
+                            scene_options={"skip_missing": True} if skip_missing else {})
+        typer.echo(f"wrote {len(paths)} files under {out if out is not None else run.parent / (run.stem + '_renders')}")
+        return
     paths = render_run(run, split=split, video=video, backend=backend, frames=frames, out=out,
                        skip_missing=skip_missing)
     typer.echo(f"wrote {len(paths)} files under {out if out is not None else Path(run) / 'renders'}")
@@ -412,7 +453,8 @@ def render_command(
 @app.command("view")
 def view_command(
     runs: list[Path] = typer.Argument(..., metavar="RUN", help="run folders (a folder of runs, such as runs/compare, "
-                                      "stands for all of them)", callback=_path_arg),
+                                      "stands for all of them), or model files (.ply, .pt: no training cameras)",
+                                      callback=_path_arg),
     port: int = typer.Option(8080, "--port", "-p", help="port to serve on"),
     host: str = typer.Option("127.0.0.1", "--host", help="address to listen on (127.0.0.1: this machine only; "
                              "0.0.0.0 opens the viewer to the network)"),

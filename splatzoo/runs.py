@@ -503,7 +503,7 @@ def _asked_record(model, model_options, config, scene_options, recorded_model: s
 def train(data, model: str | None = None, model_options: dict | None = None, config: TrainConfig | dict | None = None,
           out=None, *, resume: bool = False, overwrite: bool = False, progress: bool = True,
           evaluate_at_end: bool = True, stop_after: int | None = None, scene_options: dict | None = None,
-          command: str = "splatzoo train", watch=None) -> TrainResult:
+          command: str = "splatzoo train", watch=None, init_from=None) -> TrainResult:
     """Train `model` (default gabor) on `data` (a dataset path or a loaded Scene) into the run folder `out`.
 
     resume: continue the run in `out` with its recorded settings; the result is bit-identical to an uninterrupted
@@ -512,7 +512,9 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     dataset. overwrite: replace a run in `out`.
     SIGINT/SIGTERM stop after the current iteration with a checkpoint (TrainingInterrupted); stop_after stops
     the same way, silently, after that iteration (tests). watch(net, iteration, scene, final): called after every
-    step and at the end (a live viewer); one process only.
+    step and at the end (a live viewer); one process only. init_from: start from the surfels of this model file
+    (.ply or .pt) instead of the scene's points; its model must be `model` (None: the file's) with the same config
+    (no model options: the file's).
     """
     out = Run(out or Path("runs") / (model or "gabor"))
     from .training.distributed import launched_world
@@ -520,6 +522,13 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     if resume and not out.path.is_dir():  # before the lock, which would make the folder
         raise SplatzooError(f"cannot resume: {out.path} holds no run (no checkpoint); start it without --resume")
     world = launched_world()
+    if init_from is not None:
+        if resume:
+            raise SplatzooError("--init-from starts a new run from a model file; --resume continues a run from its "
+                                "checkpoint: pass one of them")
+        nproc = config.nproc if isinstance(config, TrainConfig) else (config or {}).get("nproc", 1)
+        if world or nproc > 1:
+            raise SplatzooError("--init-from trains on one process; drop --nproc (or torchrun)")
     if watch is not None and (world or (config.nproc if isinstance(config, TrainConfig) else
                                         (config or {}).get("nproc", 1)) > 1):
         raise SplatzooError("the live viewer watches training on one process; drop --viewer or --nproc")
@@ -529,7 +538,7 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
                                stop_after=stop_after, command=command)
     with out.lock(command, create=True):
         scene, model, model_config, cfg, state = _prepare(out, data, model, model_options, config, scene_options,
-                                                          resume=resume, overwrite=overwrite)
+                                                          resume=resume, overwrite=overwrite, init_from=init_from)
         if cfg.nproc > 1:
             if watch is not None:
                 raise SplatzooError(f"{out.path} trains on {cfg.nproc} processes; the live viewer watches one. "
@@ -541,7 +550,7 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
 
 
 def _prepare(out: Run, data, model, model_options, config, scene_options, *, resume: bool, overwrite: bool,
-             world: int = 1):
+             world: int = 1, init_from=None):
     """Check a request against the run folder (its lock held) and make the run ready to train:
     (scene, model, model_config, cfg, state). `world`: the processes a launcher started (1: none)."""
     from .data import load_scene
@@ -590,9 +599,17 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
         if data is None:
             raise SplatzooError("name the dataset to train on (DATA)")
         # everything that can fail on bad input fails before an old run is replaced
+        initial = None
+        if init_from is not None:
+            initial = initial_model(init_from, model, model_options)
+            model, model_config = initial.name, initial.config
         model = model or "gabor"
-        model_config = make_config(model, **(model_options or {}))
+        if initial is None:
+            model_config = make_config(model, **(model_options or {}))
         cfg = (TrainConfig(**config) if isinstance(config, dict) else config or TrainConfig()).validate()
+        if initial is not None and cfg.num_primitives:
+            raise SplatzooError(f"--num-primitives chooses initial points, but --init-from {init_from} starts from "
+                                f"its {initial.num_primitives} surfels: pass one of them")
         if world > 1:  # the processes a launcher started are the run's ranks
             if cfg.nproc not in (1, world):
                 raise SplatzooError(f"--nproc {cfg.nproc} disagrees with the {world} processes the launcher "
@@ -611,9 +628,36 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
         for note in getattr(scene, "notes", ()):
             print(note, file=sys.stderr, flush=True)
         out.clear()
-        write_json(out.config_path, make_record(scene, scene_options, model, model_config, cfg))
+        record = make_record(scene, scene_options, model, model_config, cfg)
+        if initial is not None:
+            record["init_from"] = str(Path(init_from).expanduser().resolve())
+        write_json(out.config_path, record)
         state = None
     return scene, model, model_config, cfg, state
+
+
+def initial_model(path, model: str | None = None, model_options: dict | None = None):
+    """The model of the file `path` (.ply or .pt) to start training from: it must be `model` (None: any), and with
+    `model_options` its config must agree with them."""
+    from .export import load_source
+    from .zoo import make_config
+
+    path = Path(path)
+    if not path.is_file():
+        raise SplatzooError(f"--init-from {path}: no such file; pass a model file (.ply from `splatzoo export` or "
+                            "another 2DGS/3DGS tool, or a .pt)")
+    net, _ = load_source(path)
+    if model is not None and net.name != model:
+        raise SplatzooError(f"--init-from {path} holds a {net.name!r} model but this run trains {model!r}; train "
+                            f"--model {net.name} (or leave --model out to take the file's model)")
+    if model_options:
+        asked = dataclasses.asdict(make_config(net.name, **model_options))
+        have = dataclasses.asdict(net.config)
+        differ = [f"{k}: file {have[k]!r}, asked {asked[k]!r}" for k in asked if asked[k] != have.get(k)]
+        if differ:
+            raise SplatzooError(f"--init-from {path}: the file's {net.name} model has other options ("
+                                f"{'; '.join(differ)}); leave the model options out to take the file's")
+    return net
 
 
 def _load_options(record: dict) -> dict:
@@ -713,7 +757,12 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     backend, device = chosen.name, chosen.torch_device()
     comm = ProcessGroupComm(device) if distributed else Comm()
     writer = comm.rank == 0
-    if state is None:  # a fresh run: its errors are its own, not a checkpoint's
+    init_from = run.record().get("init_from") if state is None and writer else None
+    if init_from:  # a fresh run from a model file's surfels (also when resumed before its first checkpoint)
+        net = initial_model(init_from, model, dataclasses.asdict(model_config))
+        net.antialias = cfg.antialias
+        trainer = Trainer(scene, net, cfg, backend, device, comm=comm)
+    elif state is None:  # a fresh run: its errors are its own, not a checkpoint's
         trainer = Trainer.start(scene, model, model_config, cfg, backend, device, comm=comm)
     else:
         try:
@@ -1048,4 +1097,57 @@ def render_run(run_dir, *, split: str = "test", video: bool = False, backend: st
             cams = orbit_cameras([v.camera for v in scene.train], frames)
             paths.append(write_video(model, cams, scene.background, folder / "orbit.webm",
                                      backend=resolve_backend(backend, next(model.parameters()).device)))
+    return paths
+
+
+# --- model files (.ply, .pt) with a dataset named on the command line --------------------------------------------
+
+def _file_and_scene(path, data, backend: str, scene_options: dict | None):
+    """(model on the backend's device, scene) of a model file and the dataset it is scored or rendered on."""
+    from .data import load_scene
+    from .export import load_source
+    from .rasterizers import select_backend
+
+    if data is None:
+        how = "splatzoo.load_ply" if Path(path).suffix.lower() == ".ply" else "splatzoo.load_model"
+        raise SplatzooError(f"{path} is a model file, not a run folder: it records no dataset, so pass the one to use "
+                            f"with --data DATA (in Python, {how} reads it)")
+    model, _ = load_source(path)
+    scene = load_scene(data, **(scene_options or {}))
+    return model.to(select_backend(backend).torch_device()), scene
+
+
+def evaluate_file(path, data, *, backend: str = "auto", lpips_net: str | None = None,
+                  lpips_convention: str | None = None, scales=(), out=None, scene_options: dict | None = None) -> dict:
+    """Evaluate the model file `path` (.ply or .pt) on the test views of the dataset `data`; the metrics are
+    returned, and written to the JSON file `out` when given."""
+    from .evaluate import LPIPS_CONVENTION, LPIPS_NET, evaluate, evaluate_scales
+
+    model, scene = _file_and_scene(path, data, backend, scene_options)
+    metrics = evaluate(model, scene, backend=backend, lpips_net=lpips_net or LPIPS_NET,
+                       lpips_convention=lpips_convention or LPIPS_CONVENTION)
+    if scales:
+        metrics["scales"] = evaluate_scales(model, scene, scales, backend=backend, lpips_net=lpips_net or LPIPS_NET,
+                                            lpips_convention=lpips_convention or LPIPS_CONVENTION)
+    if out is not None:
+        write_json(out, metrics)
+    return metrics
+
+
+def render_file(path, data, *, split: str = "test", video: bool = False, backend: str = "auto", frames: int = 60,
+                out=None, scene_options: dict | None = None) -> list[Path]:
+    """Render the model file `path` (.ply or .pt) from the split's views of the dataset `data` into the folder `out`
+    (default: <file name>_renders beside the file); returns the written paths."""
+    from .evaluate import orbit_cameras, resolve_backend, save_test_renders, write_video
+
+    if split not in ("test", "train"):
+        raise SplatzooError(f"unknown split {split!r}; use test or train")
+    path = Path(path)
+    model, scene = _file_and_scene(path, data, backend, scene_options)
+    folder = Path(out) if out is not None else path.parent / f"{path.stem}_renders"
+    paths = save_test_renders(model, scene, folder, backend=backend, split=split)
+    if video:
+        cams = orbit_cameras([v.camera for v in scene.train], frames)
+        paths.append(write_video(model, cams, scene.background, folder / "orbit.webm",
+                                 backend=resolve_backend(backend, next(model.parameters()).device)))
     return paths

@@ -282,8 +282,12 @@ def expand_runs(paths) -> list[Path]:
         if not p.exists():
             raise SplatzooError(f"{p} does not exist; name a run folder written by `splatzoo train` (or a folder "
                                 "of runs, such as runs/compare)")
+        if p.is_file() and p.suffix.lower() in (".ply", ".pt"):  # a model file: viewed without training cameras
+            runs.append(p)
+            continue
         if not p.is_dir():
-            raise SplatzooError(f"{p} is not a folder; name a run folder written by `splatzoo train`")
+            raise SplatzooError(f"{p} is not a folder; name a run folder written by `splatzoo train` or a model file "
+                                "(.ply or .pt)")
         if _is_run_folder(p):
             runs.append(p)
             continue
@@ -304,6 +308,13 @@ def load_source(path: Path, backend: str = "auto") -> Source:
     from .runs import Run
     from .zoo import load_model
 
+    if Path(path).is_file():  # a model file (.ply from `splatzoo export` or another tool, .pt): no cameras
+        from .export import load_source as load_model_source
+
+        model, _ = load_model_source(path)
+        model = model.to(select_backend(backend).torch_device())
+        return Source(label=f"{Path(path).name} ({model.name})", fixed_model=model,
+                      note="a model file: no training cameras (view its run, or orbit from the default view)")
     run = Run(path)
     status = run.status
     if status == "foreign":
@@ -433,12 +444,21 @@ class Viewer:
         self.focus = np.zeros(3)
         self.frustums = []
 
-    # what every browser sees first: the first training camera of the first source that has one
+    # what every browser sees first: the first training camera of the first source that has one; with none (model
+    # files), a camera that frames the first model's surfels
     def home_camera(self) -> Camera | None:
         for s in self.sources:
             if s.views:
                 return s.views[0].camera
-        return None
+        model = self.sources[0].model() if self.sources else None
+        means = getattr(model, "means", None)
+        if not isinstance(means, torch.Tensor) or means.ndim != 2 or not len(means):
+            return None
+        pts = means.detach().double().cpu()
+        center = pts.median(0).values
+        radius = float(torch.quantile((pts - center).norm(dim=1), 0.9)) or 1.0
+        return Camera.look_at(center + torch.tensor([0.0, -0.6, -1.0], dtype=torch.float64) * 2.2 * radius, center,
+                              fov_deg=50.0, width=640, height=480)
 
     def show_cameras(self, visible: bool) -> None:
         for handle in self.frustums:
@@ -758,4 +778,6 @@ def view(paths, *, host: str = "127.0.0.1", port: int = 8080, backend: str = "au
     runs = expand_runs(paths)
     sources = [load_source(p, backend) for p in runs]
     _warn_if_open(host, port)
-    return Viewer(sources, host=host, port=port, backend=backend, snapshot_dir=runs[0] / "renders").start()
+    first = runs[0]
+    snapshots = first.parent / f"{first.stem}_renders" if first.is_file() else first / "renders"
+    return Viewer(sources, host=host, port=port, backend=backend, snapshot_dir=snapshots).start()

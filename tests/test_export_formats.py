@@ -377,3 +377,48 @@ def test_splat_transform_reads_our_ply(tmp_path):
     assert "gabor_weight_0" in [c["name"] for c in info["extraColumns"]]
     path = export(ply, tmp_path / "g.compressed.ply", "compressed-ply")
     assert path.read_bytes()[:3] == b"ply" and not list(tmp_path.glob(".g.*"))
+
+
+# --- commands that read model files --------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    return make_synthetic_scene("plain", tmp_path_factory.mktemp("data") / "data", views=4, width=24, height=24)
+
+
+def test_eval_render_view_and_train_read_a_ply(tmp_path, tiny_data):
+    from splatzoo.viewer import Viewer, expand_runs, load_source
+
+    g = torch.Generator().manual_seed(1)
+    model = splatzoo.create_model("2dgs", torch.randn(20, 3, generator=g) * 0.3, torch.rand(20, 3, generator=g))
+    ply = save_ply(model, tmp_path / "m.ply")
+    res = runner.invoke(app, ["eval", str(ply), "--data", str(tiny_data), "--backend", "reference",
+                              "--out", str(tmp_path / "metrics.json")])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["num_primitives"] == 20 and metrics["psnr"] > 0
+    res = runner.invoke(app, ["render", str(ply), "--data", str(tiny_data), "--backend", "reference"])
+    assert res.exit_code == 0, res.output
+    assert [p.suffix for p in (tmp_path / "m_renders").rglob("*") if p.is_file()] == [".png"]
+    res = runner.invoke(app, ["eval", str(ply)])
+    assert isinstance(res.exception, SplatzooError) and "--data DATA" in str(res.exception)
+    # the viewer shows a model file without training cameras, framed from a camera that looks at it
+    source = load_source(expand_runs([ply])[0])
+    assert source.views == [] and source.fixed_model.num_primitives == 20 and "no training cameras" in source.note
+    home = Viewer([source], host="127.0.0.1", port=0, backend="reference", snapshot_dir=tmp_path).home_camera()
+    with torch.no_grad():
+        assert float(model.render(home.to(dtype=torch.float32), backend="reference").alpha.max()) > 0.1
+    # training starts from the file's surfels (and its model), not from the dataset's points
+    res = runner.invoke(app, ["train", str(tiny_data), "--init-from", str(ply), "--iterations", "2", "--no-densify",
+                              "--backend", "reference", "--out", str(tmp_path / "run")])
+    assert res.exit_code == 0, res.output
+    record = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert record["model"] == "2dgs" and record["init_from"] == str(ply.resolve())
+    assert splatzoo.load_model(tmp_path / "run" / "model.pt").num_primitives == 20
+    res = runner.invoke(app, ["train", str(tiny_data), "--init-from", str(ply), "--model", "gabor", "--out",
+                              str(tmp_path / "run2")])
+    assert isinstance(res.exception, SplatzooError) and "holds a '2dgs' model but this run trains 'gabor'" in \
+        str(res.exception)
+    assert not (tmp_path / "run2" / "config.json").exists()
