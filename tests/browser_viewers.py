@@ -185,23 +185,6 @@ def render_in_viewer(ply_path, camera, viewer: str = "spark", background=(1.0, 1
         return b.render(ply_path, camera, viewer=viewer, background=background, options=options)
 
 
-def ensure_third_scale(ply_path) -> None:
-    """Give a PLY written with two scales a third, scale_2 = -inf (a flat surfel), in place: the viewers need it."""
-    from plyfile import PlyData, PlyElement
-
-    ply = PlyData.read(str(ply_path))
-    v = ply["vertex"].data
-    if "scale_2" in v.dtype.names:
-        return
-    names = list(v.dtype.names)
-    at = names.index("scale_1") + 1
-    out = np.empty(len(v), dtype=[(k, "<f4") for k in names[:at] + ["scale_2"] + names[at:]])
-    for k in names:
-        out[k] = v[k]
-    out["scale_2"] = -np.inf
-    PlyData([PlyElement.describe(out, "vertex")], text=False, comments=ply.comments).write(str(ply_path))
-
-
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR (dB) of two images in [0, 1]."""
     mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))

@@ -58,7 +58,6 @@ def test_splats_land_on_their_pixels(browser, tmp_path):
     model = surfel_model(means, normals, torch.full((n,), 1.5 * 3.0 / float(K[0, 0])), torch.full((n,), 0.9),
                          torch.tensor([[0.1, 0.9, 0.2]]).expand(n, 3))
     ply = save_ply(model, tmp_path / "two.ply")
-    bv.ensure_third_scale(ply)
     bg = (0.2, 0.4, 0.6)
 
     def centroids_and_peaks(img):
@@ -114,7 +113,6 @@ def trained_2dgs(tmp_path_factory):
           root / "2dgs", progress=False, evaluate_at_end=False)
     model, scene, _ = load_run(root / "2dgs", "cpu")
     ply = save_ply(model, root / "2dgs.ply")
-    bv.ensure_third_scale(ply)
     return model, scene.test[0], ply
 
 
