@@ -64,8 +64,8 @@ def main(argv=None) -> int:
             size = save_ply(baked, Path(tmp) / f"baked{steps}.ply").stat().st_size
             with torch.no_grad():
                 score = gt_psnr(baked)
-            print(f"| baked, {steps} steps | {report['splats']} (cap {report['max_splats']}) | {size:,} | {score:.2f} | "
-                  f"{report['bake_db']:.2f} (split alone {report['start_db']:.2f}, waves dropped "
+            print(f"| baked, {steps} steps | {report['splats']} (cap {report['max_splats']}) | {size:,} | "
+                  f"{score:.2f} | {report['bake_db']:.2f} (split alone {report['start_db']:.2f}, waves dropped "
                   f"{report['plain_db']:.2f}) | {seconds:.0f} |", flush=True)
     return 0
 

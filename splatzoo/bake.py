@@ -31,7 +31,7 @@ from types import SimpleNamespace
 import torch
 
 from .errors import SplatzooError
-from .geometry import SH_C0, eval_sh, quat_to_rotmat, rotmat_to_quat
+from .geometry import eval_sh, quat_to_rotmat, rotmat_to_quat
 from .types import Camera, Surfels
 
 SPLATS_PER_SURFEL = 8   # max_splats=None: this many baked splats per source surfel
@@ -52,7 +52,7 @@ class BakeOptions:
     max_splats: int | None = field(default=None, metadata={
         "help": f"the most constant-colour splats the bake may use (default: {SPLATS_PER_SURFEL} x the source's "
                 "surfel count)"})
-    steps: int = field(default=1500, metadata={"help": "optimiser steps of the fit (0: the split alone)"})
+    steps: int = field(default=600, metadata={"help": "optimiser steps of the fit (0: the split alone)"})
     views: int = field(default=96, metadata={
         "help": "fitting views: the given cameras, then jittered copies of them up to this many"})
     jitter: float = field(default=0.15, metadata={
@@ -261,7 +261,7 @@ def split_surfels(model, cameras: list[Camera], max_splats: int, max_per_surfel:
     base = _view_independent_base(model, s, cam0)
     n = s.num
     k = s.num_waves
-    vec, amp, phase = s.wave_vectors, s.wave_amplitudes, s.wave_phases  # [n,K,2] rad per sigma, [n,K,3], [n,K]
+    vec, amp = s.wave_vectors, s.wave_amplitudes  # [n,K,2] radians per sigma, [n,K,3]
     if k and s.wave_counts is not None:
         live = torch.arange(k, device=dev)[None] < s.wave_counts[:, None].to(dev)
         amp = amp * live[..., None]
@@ -289,7 +289,7 @@ def split_surfels(model, cameras: list[Camera], max_splats: int, max_per_surfel:
     pixel = _pixel_size(s.means, cameras)
     counts_a, counts_b = _fit_budget(2 * SPAN * ka / math.pi, 2 * SPAN * kb / math.pi, 2 * SPAN * stretch_a / pixel,
                                      2 * SPAN * stretch_b / pixel, max_splats, max_per_surfel)
-    if int((counts_a * counts_b).sum()) > max_splats:  # more surfels than the budget: keep the most opaque
+    if int((counts_a * counts_b).sum()) > max_splats:  # more surfels than splats: keep the most visible (opacity, area)
         order = torch.argsort(s.opacities * s.scales.prod(-1), descending=True)[:max_splats]
         order = order.sort().values
         ones = torch.ones_like(order)
