@@ -320,9 +320,9 @@ def flatten_gaussians(log_scales: np.ndarray, quats: np.ndarray) -> tuple[np.nda
     return out_s.astype(np.float32), np.where((thin == 2)[:, None], quats, out_q.astype(np.float32)), thick
 
 
-def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dict, bool]:
-    """(model name, config, whether the header named it) from the `splatzoo model` / `splatzoo config` comments, or
-    the standard layout's model without them."""
+def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dict, bool, list[str]]:
+    """(model name, config, whether the header named it, properties to ignore) from the `splatzoo model` /
+    `splatzoo config` comments, or the standard layout's model without them."""
     model_name, config = None, {}
     for c in comments:
         if c.startswith("splatzoo model "):
@@ -337,8 +337,9 @@ def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dic
                 raise SplatzooError(f"{path}: the 'splatzoo config' header comment must be a JSON object of model "
                                     f"options, got a {type(config).__name__}; export the model again")
     if model_name is None:
-        return (*_standard_model(path, names)[:2], False)
-    return model_name, config, True
+        model_name, config, ignored = _standard_model(path, names)
+        return model_name, config, False, ignored
+    return model_name, config, True, []
 
 
 def load_ply(path):
@@ -350,7 +351,7 @@ def load_ply(path):
     arr, comments = read_ply_vertices(path)
     names = list(arr.dtype.names)
     present = set(names)
-    model_name, config, ours = _header_model(path, comments, names)
+    model_name, config, ours, ignored = _header_model(path, comments, names)
     config = stored_config(model_name, config)
     try:
         model = create_model(model_name, **config)   # no primitives yet: it tells each parameter's trailing shape
@@ -363,10 +364,10 @@ def load_ply(path):
     columns = {k: arr[k] for k in names}
     notes = []
     if not ours:
-        ignored = _standard_model(path, names)[2]
         if ignored:
-            notes.append(f"{path}: ignored the properties {', '.join(ignored[:8])}{' ...' if len(ignored) > 8 else ''}, "
-                         "which the 2DGS/3DGS layout does not have")
+            more = " ..." if len(ignored) > 8 else ""
+            notes.append(f"{path}: ignored the properties {', '.join(ignored[:8])}{more}, which the 2DGS/3DGS layout "
+                         "does not have")
         if "scale_2" in present and not np.all(arr["scale_2"] == FLAT_LOG_SCALE):
             _float_columns(path, arr, ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"],
                            "log_scales")
@@ -483,11 +484,12 @@ class ExporterSpec:
         try:
             loaded = importlib.import_module(module)
         except ModuleNotFoundError as e:
-            if e.name and module.startswith(e.name):
+            if not e.name or module.startswith(e.name):
                 raise SplatzooError(f"export format {self.name!r} needs {module}, which this splatzoo installation "
                                     "does not have; update splatzoo (or pick another --format, see "
                                     "`splatzoo export --list`)") from None
-            raise
+            raise SplatzooError(f"export format {self.name!r} needs the Python package {e.name}, which is not "
+                                f"installed: pip install {e.name} (or pick another --format)") from None
         try:
             return getattr(loaded, attr)
         except AttributeError:

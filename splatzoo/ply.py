@@ -213,15 +213,15 @@ def _row_error(path: Path, e, count: int, props, body_start: int, fix: str, erro
     except OSError:
         pass
     if e.message == "expected end-of-line":
-        return error(f"{path}: vertex row {row + 1}{text} holds more than the {len(props)} values its properties declare "
-                     f"({names}); the file is damaged. {fix}")
-    return error(f"{path}: vertex row {row + 1}{text} does not hold {len(props)} numbers ({names}); the file is damaged "
-                 f"or a value does not fit its type. {fix}")
+        return error(f"{path}: vertex row {row + 1}{text} holds more than the {len(props)} values its properties "
+                     f"declare ({names}); the file is damaged. {fix}")
+    return error(f"{path}: vertex row {row + 1}{text} does not hold {len(props)} numbers ({names}); the file is "
+                 f"damaged or a value does not fit its type. {fix}")
 
 
 def _check_ascii(path: Path, arr, count: int, props, only: bool, body_start: int, fix: str, error) -> None:
-    """ASCII values were parsed by plyfile: integer properties must have held whole numbers in range (plyfile casts),
-    and when the vertex element is the file's one element no row may follow its last."""
+    """ASCII values were parsed by plyfile, which refuses fractions and out-of-range values in integer properties;
+    when the vertex element is the file's one element, no row may follow its last."""
     if not only:
         return
     with open(path, "rb") as f:

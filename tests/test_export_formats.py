@@ -1,8 +1,6 @@
 """Export formats: the registry and `--format` parsing, the third scale of the ply layout, PLY files of other tools
 (2DGS, 3DGS) read by load_ply, files whose model cannot be told refused, and splat-transform's SPZ and SOG."""
-import dataclasses
 import json
-import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -149,7 +147,8 @@ def test_files_whose_model_cannot_be_told_are_refused(tmp_path):
     model = random_model("gabor", n=10)
     arr, _ = read_ply_vertices(save_ply(model, tmp_path / "g.ply"))
     cols = {k: arr[k] for k in arr.dtype.names}
-    with pytest.raises(SplatzooError, match=r"gabor_color_base_0.* of the splatzoo model .*'gabor'.* but no 'comment splatzoo model' header"):
+    with pytest.raises(SplatzooError, match=r"gabor_color_base_0.* of the splatzoo model .*'gabor'.* but no "
+                                            r"'comment splatzoo model' header"):
         load_ply(_write(tmp_path / "headless.ply", cols))
     cols = _gaussians(5)
     del cols["opacity"], cols["rot_3"]
@@ -164,7 +163,8 @@ def test_files_whose_model_cannot_be_told_are_refused(tmp_path):
     beta = random_model("beta", n=5) if "beta" in builtin_models() else None
     if beta is not None:
         arr, _ = read_ply_vertices(save_ply(beta, tmp_path / "b.ply"))
-        with pytest.raises(SplatzooError, match=r"falloff_logit of the splatzoo model 'beta' but no 'comment splatzoo model' header"):
+        with pytest.raises(SplatzooError, match=r"falloff_logit of the splatzoo model 'beta' but no 'comment "
+                                                r"splatzoo model' header"):
             load_ply(_write(tmp_path / "b-headless.ply", {k: arr[k] for k in arr.dtype.names}))
     # another tool's extras are ignored, and the warning says which
     with pytest.warns(UserWarning, match=r"ignored the properties filter_3D"):
@@ -193,6 +193,42 @@ def test_ascii_export_round_trips(tmp_path):
 def _saved(model, tmp_path) -> Path:
     splatzoo.save_model(model, tmp_path / "model.pt")
     return tmp_path / "model.pt"
+
+
+def test_counts_are_checked_before_plyfile_allocates(tmp_path):
+    """plyfile sizes each element by its header count up front: a crafted count in any element (a mesh's faces
+    too) is refused by the size checks in front of it, fast and without the memory it asks for."""
+    import time
+    import tracemalloc
+
+    header = ("ply\nformat {fmt} 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n"
+              "element face {faces}\nproperty list uchar int vertex_indices\nend_header\n")
+    cases = {"bin.ply": header.format(fmt="binary_little_endian", faces=10**12).encode() + bytes(12 + 4),
+             "ascii.ply": header.format(fmt="ascii", faces=10**12).encode() + b"0 0 0\n3 0 0 0\n"}
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        tracemalloc.start()
+        start = time.perf_counter()
+        try:
+            with pytest.raises(SplatzooError, match=r"promises|truncated"):
+                read_ply_vertices(tmp_path / name)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert time.perf_counter() - start < 1.0 and peak < 5_000_000, name
+    # the same file with its true face count reads (its vertices)
+    (tmp_path / "ok.ply").write_bytes(header.format(fmt="ascii", faces=1).encode() + b"0.5 0 0\n3 0 0 0\n")
+    arr, _ = read_ply_vertices(tmp_path / "ok.ply")
+    assert arr["x"].tolist() == [0.5]
+
+
+def test_big_endian_files_load(tmp_path):
+    model = random_model("2dgs", n=12, sh_degree=1)
+    arr, comments = read_ply_vertices(save_ply(model, tmp_path / "m.ply"))
+    plyfile.PlyData([plyfile.PlyElement.describe(arr.astype(arr.dtype.newbyteorder(">")), "vertex")],
+                    byte_order=">", comments=comments).write(str(tmp_path / "be.ply"))
+    assert b"binary_big_endian" in (tmp_path / "be.ply").read_bytes()[:100]
+    assert max_render_diff(model, load_ply(tmp_path / "be.ply")) == 0
 
 
 # --- the registry and --format ---------------------------------------------------------------------------------
@@ -276,12 +312,14 @@ def test_lazy_formats_say_when_their_module_is_missing(tmp_path, monkeypatch):
     assert not (tmp_path / "b.ply").exists()
 
 
-def test_export_formats_do_not_import_their_modules_until_used():
-    code = ("import sys, splatzoo.export as e; e.list_formats(); e.parse_format('ply'); "
-            "print(sorted(m for m in ('splatzoo.bake', 'splatzoo.mesh_texture', 'splatzoo.splat_tools') "
-            "if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "[]"
+def test_export_formats_do_not_import_their_modules_until_used(monkeypatch):
+    lazy = ("splatzoo.bake", "splatzoo.mesh_texture", "splatzoo.splat_tools")
+    for name in lazy:
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    assert isinstance(EXPORTERS.get("baked").fn, str) and isinstance(EXPORTERS.get("mesh-glb").fn, str)
+    parse_format("ply")
+    parse_format("spz:version=3")
+    assert [m for m in lazy if m in sys.modules] == []
 
 
 # --- splat-transform (SPZ, SOG) ----------------------------------------------------------------------------------
