@@ -18,13 +18,16 @@ Viewer settings (tests/browser/render.js passes them through):
   gs3d default         DropInViewer defaults: +0.3 px^2 (kernel2DSize), no opacity change (3DGS's rule)
   gs3d aa              antialiased: +0.3 px^2 with the opacity rescaled (Mip-Splatting's rule)
   gs3d aa 0.1          antialiased, kernel2DSize 0.1: splatzoo's footprint
-  gs3d 2D mode         splatRenderMode TwoD (2DGS ray-splat rendering)
+  gs3d 2D mode         splatRenderMode TwoD (2DGS ray-splat rendering; in 0.4.7 it draws every splat half a pixel
+                       left of and below where it belongs, hence its low scores)
 PLY variants for the viewers' default dilation (see `dilation_compensated`), rendered with the default settings:
-  ... +shrink          each surfel's variance less (0.3 - f) px^2 at its median training-camera scale, f = 0.1 for an
-                       anti-aliased model (its footprint), 0 otherwise; opacity times the footprint's gain
-                       sqrt(s0 s1 / ((s0 + f)(s1 + f))): for 3DGS-rule viewers (GS3D, SuperSplat/PlayCanvas, SIBR)
-  ... +shrink+opacity  the same shrink, and opacity times sqrt(s0 s1 / (s0' s1')) (clamped to 0.99): undoes
-                       Spark's Mip-Splatting rescale
+  ... +shrink+gain     each surfel's variance (s0, s1 in px^2) less (0.3 - f) px^2 at its median training-camera
+                       scale (floored at s / 4), f = 0.1 for an anti-aliased model (its footprint), 0 otherwise;
+                       opacity times the footprint's gain sqrt(s0 s1 / ((s0 + f)(s1 + f))): aimed at 3DGS-rule
+                       viewers (GS3D, SuperSplat/PlayCanvas, SIBR)
+  ... +shrink, +gain   one of the two
+  ... +shrink+opacity  the same shrink, opacity times sqrt(s0 s1 / (s0' s1')) (clamped to 0.99): undoes Spark's
+                       Mip-Splatting rescale
 """
 from __future__ import annotations
 
@@ -50,13 +53,17 @@ SETTINGS = [  # label, viewer, options, ply variant
     ("spark blur 0.1", "spark", {"blurAmount": 0.1}, "plain"),
     ("spark no blur", "spark", {"blurAmount": 0.0}, "plain"),
     ("spark z-sort", "spark", {"sortRadial": False}, "plain"),
+    ("spark blur 0.1 z-sort", "spark", {"blurAmount": 0.1, "sortRadial": False}, "plain"),
     ("spark 2DGS", "spark", {"enable2DGS": True}, "plain"),
+    ("spark default +shrink+gain", "spark", {}, "3dgs"),
     ("spark default +shrink+opacity", "spark", {}, "mip"),
     ("gs3d default", "gs3d", {}, "plain"),
     ("gs3d aa", "gs3d", {"antialiased": True}, "plain"),
     ("gs3d aa 0.1", "gs3d", {"antialiased": True, "kernel2DSize": 0.1}, "plain"),
     ("gs3d 2D mode", "gs3d", {"splatRenderMode": 1}, "plain"),
-    ("gs3d default +shrink", "gs3d", {}, "3dgs"),
+    ("gs3d default +shrink+gain", "gs3d", {}, "3dgs"),
+    ("gs3d default +shrink", "gs3d", {}, "shrink"),
+    ("gs3d default +gain", "gs3d", {}, "gain"),
 ]
 VIEWER_DILATION = 0.3  # px^2 both viewers add by default (Spark blurAmount, GS3D kernel2DSize)
 PIXEL_FILTER = 0.1     # px^2, splatzoo's anti-aliasing footprint (splatzoo.rasterizers.common.PIXEL_FILTER)
@@ -73,10 +80,11 @@ def pixel_size_sq(means: torch.Tensor, cameras) -> torch.Tensor:
     return torch.nanmedian(torch.stack(per), dim=0).values
 
 
-def dilation_compensated(src: Path, dst: Path, cameras, antialias: bool, undo_opacity_rescale: bool) -> Path:
-    """A copy of PLY `src` whose default viewer dilation (+0.3 px^2) lands on what splatzoo renders: each scale's
-    variance less (0.3 - footprint) px^2 at the surfel's training-camera scale (floored at a quarter of it), and the
-    opacity times the footprint's gain, and (Spark's rule) times sqrt(s0 s1 / (s0' s1'))."""
+def dilation_compensated(src: Path, dst: Path, cameras, antialias: bool, mode: str) -> Path:
+    """A copy of PLY `src` whose default viewer dilation (+0.3 px^2) lands on what splatzoo renders. mode "3dgs":
+    each scale's variance less (0.3 - footprint) px^2 at the surfel's training-camera scale (floored at a quarter of
+    it) and the opacity times the footprint's gain; "shrink" or "gain": one of the two; "mip": both, and the opacity
+    also times sqrt(s0 s1 / (s0' s1')), which undoes Spark's rescale."""
     from plyfile import PlyData, PlyElement
 
     ply = PlyData.read(str(src))
@@ -86,8 +94,12 @@ def dilation_compensated(src: Path, dst: Path, cameras, antialias: bool, undo_op
     footprint = PIXEL_FILTER if antialias else 0.0
     s2 = [np.exp(2 * v[f"scale_{i}"].astype(np.float64)) / px2 for i in (0, 1)]  # variance in px^2
     new = [np.maximum(s - (VIEWER_DILATION - footprint), 0.25 * s) for s in s2]
+    if mode == "gain":
+        new = s2
     gain = np.sqrt(s2[0] * s2[1] / ((s2[0] + footprint) * (s2[1] + footprint)))
-    if undo_opacity_rescale:
+    if mode == "shrink":
+        gain = np.ones_like(gain)
+    if mode == "mip":
         gain = gain * np.sqrt(s2[0] * s2[1] / (new[0] * new[1]))
     opacity = 1 / (1 + np.exp(-v["opacity"].astype(np.float64)))
     opacity = np.clip(opacity * gain, 1e-6, 0.99)
@@ -141,10 +153,9 @@ def main(argv=None) -> int:
                 print(f"trained {label} in {time.time() - t:.0f} s")
             model, scene, _ = load_run(run, "cpu")
             plys = {"plain": save_ply(model, out / f"{run.name}.ply")}
-            bv.ensure_third_scale(plys["plain"])
             cams = [v.camera for v in scene.train]
-            plys["3dgs"] = dilation_compensated(plys["plain"], out / f"{run.name}.3dgs.ply", cams, antialias, False)
-            plys["mip"] = dilation_compensated(plys["plain"], out / f"{run.name}.mip.ply", cams, antialias, True)
+            for mode in ("3dgs", "shrink", "gain", "mip"):
+                plys[mode] = dilation_compensated(plys["plain"], out / f"{run.name}.{mode}.ply", cams, antialias, mode)
             bg = tuple(float(c) for c in model.background) if model.background is not None else (1.0, 1.0, 1.0)
             rows = {s[0]: [] for s in SETTINGS}
             own_gt = []
