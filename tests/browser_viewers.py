@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from splatzoo.errors import SplatzooError
+
 BROWSER_DIR = Path(__file__).resolve().parent / "browser"
 VIEWERS = ("spark", "gs3d")
 PACKAGES = ("three", "@sparkjsdev/spark", "@mkkellogg/gaussian-splats-3d")
@@ -113,7 +115,7 @@ class BrowserViewers:
     def __init__(self, timeout_s: float = 60.0):
         reason = missing()
         if reason:
-            raise RuntimeError(reason)
+            raise SplatzooError(reason)
         self.timeout_ms = timeout_s * 1000
         self._server = self._pw = self._browser = None
 
@@ -147,9 +149,9 @@ class BrowserViewers:
         viewer's default settings unless `options` says otherwise (see tests/browser/render.js). Returns
         [H, W, 3] float64 in [0, 1] (8-bit values from the canvas)."""
         if viewer not in VIEWERS:
-            raise ValueError(f"unknown viewer {viewer!r}; known: {', '.join(VIEWERS)}")
+            raise SplatzooError(f"unknown viewer {viewer!r}; known: {', '.join(VIEWERS)}")
         if not Path(ply_path).is_file():
-            raise FileNotFoundError(f"no PLY file at {ply_path}")
+            raise SplatzooError(f"no PLY file at {ply_path}; write one with splatzoo.export.save_ply")
         from PIL import Image
 
         url = self._server.add_file(ply_path)
@@ -165,14 +167,14 @@ class BrowserViewers:
             try:
                 result = page.evaluate("args => window.renderSplat(args)", args)
             except Exception as e:
-                raise RuntimeError(f"{viewer} failed to render {ply_path}: {e}"
+                raise SplatzooError(f"{viewer} failed to render {ply_path}: {e}"
                                    + (f" (page errors: {'; '.join(errors)})" if errors else "")) from None
         finally:
             page.close()
         png = base64.b64decode(result["image"].split(",", 1)[1])
         img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64) / 255.0
         if img.shape != (camera.height, camera.width, 3):
-            raise RuntimeError(f"{viewer} returned a {img.shape[1]}x{img.shape[0]} image for a "
+            raise SplatzooError(f"{viewer} returned a {img.shape[1]}x{img.shape[0]} image for a "
                                f"{camera.width}x{camera.height} camera")
         return img
 

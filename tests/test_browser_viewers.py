@@ -135,3 +135,16 @@ def test_2dgs_export_in_viewers_matches_splatzoo(browser, trained_2dgs):
         print(f"{viewer}: vs splatzoo {vs_own:.2f} dB, vs ground truth {vs_gt:.2f} dB")
         assert vs_gt >= own_gt - 2.0, (viewer, vs_gt, own_gt)
         assert vs_own >= 25.0, (viewer, vs_own)
+
+
+def test_errors_name_the_viewer_and_the_file(browser, tmp_path):
+    cam = Camera.look_at([0.0, 0.0, -4.0], [0.0, 0.0, 0.0], width=32, height=32, fov_deg=60)
+    with pytest.raises(bv.SplatzooError, match="unknown viewer 'supersplat'; known: spark, gs3d"):
+        browser.render(tmp_path / "x.ply", cam, viewer="supersplat")
+    with pytest.raises(bv.SplatzooError, match="no PLY file at"):
+        browser.render(tmp_path / "missing.ply", cam, viewer="spark")
+    broken = tmp_path / "broken.ply"  # a vertex without y: Spark's reader refuses it, and the page says so
+    broken.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n"
+                       + bytes(4))
+    with pytest.raises(bv.SplatzooError, match=r"spark failed to render .*broken\.ply: .*Missing y"):
+        browser.render(broken, cam, viewer="spark")
