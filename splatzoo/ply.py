@@ -185,7 +185,12 @@ def read_ply_vertices(path, *, fix: str = PLY_FIX, error=SplatzooError):
         raise _row_error(path, e, count, props, body_start, fix, error) from None
     except OSError as e:
         raise error(f"PLY file {path} cannot be read ({e.strerror or e})") from None
-    except (plyfile.PlyParseError, ValueError, OverflowError, TypeError, UnicodeDecodeError) as e:
+    except OverflowError as e:  # plyfile casts an ASCII integer out of its type's range without catching this
+        bad = _ascii_integer_problem(path, body_start, count, props) if fmt == "ascii" else None
+        if bad:
+            raise error(f"{path}: {bad}; the file is damaged. {fix}") from None
+        raise error(f"{path} cannot be parsed as a PLY file ({str(e)[:200]}); the file is damaged. {fix}") from None
+    except (plyfile.PlyParseError, ValueError, TypeError, UnicodeDecodeError) as e:
         raise error(f"{path} cannot be parsed as a PLY file ({str(e)[:200]}); the file is damaged. {fix}") from None
     if fmt == "ascii":
         _check_ascii(path, arr, count, props, len(elements) == 1, body_start, fix, error)
@@ -212,11 +217,39 @@ def _row_error(path: Path, e, count: int, props, body_start: int, fix: str, erro
                     break
     except OSError:
         pass
+    prop = next(((k, t) for k, t, _ in props if k == getattr(e.prop, "name", None)), None)
+    if e.message == "malformed input" and prop is not None and prop[1][0] in "iu":
+        bad = _ascii_integer_problem(path, body_start, count, props)
+        if bad:
+            return error(f"{path}: {bad}; the file is damaged. {fix}")
     if e.message == "expected end-of-line":
         return error(f"{path}: vertex row {row + 1}{text} holds more than the {len(props)} values its properties "
                      f"declare ({names}); the file is damaged. {fix}")
     return error(f"{path}: vertex row {row + 1}{text} does not hold {len(props)} numbers ({names}); the file is "
                  f"damaged or a value does not fit its type. {fix}")
+
+
+def _ascii_integer_problem(path: Path, body_start: int, count: int, props) -> str | None:
+    """Which integer property of an ASCII vertex list holds a number that is not a whole number in its type's range
+    (plyfile only says that a value did not fit), or None."""
+    import numpy as np
+
+    ints = [(i, k, t) for i, (k, t, _) in enumerate(props) if t[0] in "iu"]
+    with open(path, "rb") as f:
+        f.seek(body_start)
+        for row, line in zip(range(count), f):
+            words = line.split()
+            for i, k, t in ints:
+                try:
+                    value = float(words[i])
+                except (IndexError, ValueError):
+                    continue
+                info = np.iinfo(t)
+                whole = bool(np.isfinite(value)) and value == int(value)
+                if not (whole and info.min <= value <= info.max):
+                    return (f"the {ply_type_name(t)} property {k} holds values that are not whole numbers in "
+                            f"{info.min}..{info.max} (vertex row {row + 1})")
+    return None
 
 
 def _check_ascii(path: Path, arr, count: int, props, only: bool, body_start: int, fix: str, error) -> None:
