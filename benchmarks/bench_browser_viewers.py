@@ -6,7 +6,9 @@
 Trains (once; runs are kept in --out) a 2dgs model with and without the pixel-footprint filter (`antialias`, the
 training default) and a gabor model on a synthetic scene with a white backdrop, at a fixed surfel count, exports each
 with `splatzoo.export.save_ply`, renders every test view in each viewer with several settings and prints the mean
-PSNR of the viewer's frame against splatzoo's own render (`model.render`) and against the ground truth.
+PSNR of the viewer's frame against splatzoo's own render (`model.render`) and against the ground truth. Writes
+--out/results.json and, per model, --out/<model>.png: the first test view as ground truth | splatzoo | Spark |
+GaussianSplats3D (default settings).
 
 Viewer settings (tests/browser/render.js passes them through):
   spark default        SparkRenderer defaults: +0.3 px^2 on the screen covariance, opacity rescaled by
@@ -110,6 +112,17 @@ def dilation_compensated(src: Path, dst: Path, cameras, antialias: bool, mode: s
     return dst
 
 
+def save_strip(images, path: Path, gap: int = 2) -> None:
+    """Images [H,W,3] in [0,1] side by side (ground truth, splatzoo, Spark, GaussianSplats3D) as one PNG."""
+    from PIL import Image
+
+    h, w = images[0].shape[:2]
+    canvas = np.ones((h, len(images) * (w + gap) - gap, 3))
+    for k, img in enumerate(images):
+        canvas[:, k * (w + gap):k * (w + gap) + w] = img
+    Image.fromarray(np.round(canvas * 255).astype(np.uint8)).save(path)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="bench_browser_viewers", help="folder for the dataset, runs, PLY files, results")
@@ -158,8 +171,8 @@ def main(argv=None) -> int:
                 plys[mode] = dilation_compensated(plys["plain"], out / f"{run.name}.{mode}.ply", cams, antialias, mode)
             bg = tuple(float(c) for c in model.background) if model.background is not None else (1.0, 1.0, 1.0)
             rows = {s[0]: [] for s in SETTINGS}
-            own_gt = []
-            for view in scene.test:
+            own_gt, strip = [], []
+            for i, view in enumerate(scene.test):
                 gt = view.image_float().double().numpy()
                 with torch.no_grad():
                     own = model.render(view.camera, background=torch.tensor(bg), backend="cpu").rgb.clamp(0, 1)
@@ -168,6 +181,11 @@ def main(argv=None) -> int:
                 for setting, viewer, opts, variant in SETTINGS:
                     img = browser.render(plys[variant], view.camera, viewer=viewer, background=bg, options=opts)
                     rows[setting].append((bv.psnr(img, own), bv.psnr(img, gt)))
+                    if i == 0 and setting in ("spark default", "gs3d default"):
+                        strip += [img]
+                if i == 0:
+                    strip = [gt, own] + strip
+            save_strip(strip, out / f"{run.name}.png")
             results[label] = {"splatzoo_vs_gt": float(np.mean(own_gt)),
                               **{k: {"vs_splatzoo": float(np.mean([a for a, _ in r])),
                                      "vs_gt": float(np.mean([b for _, b in r]))} for k, r in rows.items()}}
