@@ -70,7 +70,7 @@ import torch
 
 from .errors import PluginError, SplatzooError
 from .io import read_ply_vertices, write_ply_vertices
-from .ply import ply_type_name
+from .ply import compressed_ply, ply_type_name
 from .registry import Registry
 
 FORMAT_VERSION = 2     # 2: scale_2 (-inf) and the SplatRenderMode comment; version 1 files (two scales) still load
@@ -436,8 +436,16 @@ def _float_columns(path, arr, props, pname: str) -> None:
 
 # --- sources: a run folder, a model .pt, a model .ply ---------------------------------------------------------
 
+# splat files of other formats that splat-transform turns into a PLY for load_ply
+CONVERTIBLE_SUFFIXES = (".compressed.ply", ".spz", ".sog", ".splat", ".ksplat")
+
+
 def load_source(source):
-    """(model, the file it was read from) of a run folder (its trained model.pt), a model .pt or a model .ply."""
+    """(model, the file it was read from) of a run folder (its trained model.pt), a model .pt or a model .ply; SPZ,
+    SOG, compressed PLY, .splat and .ksplat files are converted to a PLY by splat-transform first (then read as
+    splat files without a splatzoo header: `2dgs`)."""
+    import tempfile
+
     from .runs import Run
     from .zoo import load_model
 
@@ -446,6 +454,12 @@ def load_source(source):
         is_file, exists = source.is_file(), source.exists()
     except OSError as e:
         raise SplatzooError(f"{str(source)[:200]} cannot be looked up ({e.strerror or e})") from None
+    name = source.name.lower()
+    if is_file and (name.endswith(CONVERTIBLE_SUFFIXES[1:]) or (name.endswith(".ply") and compressed_ply(source))):
+        from .splat_tools import convert_file
+
+        with tempfile.TemporaryDirectory(prefix="splatzoo-load-") as folder:
+            return load_ply(convert_file(source, Path(folder) / "model.ply")), source
     if is_file:
         with open(source, "rb") as f:
             magic = f.read(3)

@@ -115,6 +115,17 @@ def _ply_header(path: Path, data: bytes, fix: str, error) -> tuple[str, list[str
     return fmt, comments, elements, body_start
 
 
+def compressed_ply(path) -> bool:
+    """Whether `path` is a PlayCanvas compressed PLY (its first element is `chunk`), from its header alone."""
+    try:
+        head, _ = _read_head(Path(path))
+    except OSError:
+        return False
+    end = head.find(b"end_header")
+    first = re.search(rb"^element\s+(\S+)", head[:max(end, 0)], re.M)
+    return head.startswith(b"ply") and first is not None and first.group(1) == b"chunk"
+
+
 def _row_bytes(props) -> int:
     """Bytes of one binary row: exact for fixed-size properties, the least possible (empty lists) with lists."""
     import numpy as np
@@ -168,6 +179,10 @@ def read_ply_vertices(path, *, fix: str = PLY_FIX, error=SplatzooError):
         hint = "; pass the file written by `splatzoo export`" if fix == PLY_FIX else ""
         raise error(f"no PLY file at {path}{hint}")
     fmt, comments, elements, body_start = _ply_header(path, head, fix, error)
+    if elements and elements[0][0] == "chunk":
+        raise error(f"{path} is a compressed PLY (PlayCanvas / SuperSplat): convert it to a plain one first, e.g. "
+                    f"`splat-transform {path.name} plain.ply` (splatzoo's commands that read model files do this "
+                    "themselves when splat-transform is installed)")
     if not elements or elements[0][0] != "vertex":
         raise error(f"{path}: the first PLY element must be 'vertex' (one per point)")
     _, count, props = elements[0]

@@ -282,7 +282,8 @@ def expand_runs(paths) -> list[Path]:
         if not p.exists():
             raise SplatzooError(f"{p} does not exist; name a run folder written by `splatzoo train` (or a folder "
                                 "of runs, such as runs/compare)")
-        if p.is_file() and p.suffix.lower() in (".ply", ".pt"):  # a model file: viewed without training cameras
+        if p.is_file() and p.suffix.lower() in (".ply", ".pt", ".spz", ".sog", ".splat", ".ksplat"):
+            # a model file (other splat formats through splat-transform): viewed without training cameras
             runs.append(p)
             continue
         if not p.is_dir():

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 import splatzoo
 from splatzoo.cli import app
 from splatzoo.errors import SplatzooError, UnknownNameError
-from splatzoo.export import (EXPORTERS, ExporterSpec, export, flatten_gaussians, load_ply, parse_format,
+from splatzoo.export import (EXPORTERS, ExporterSpec, export, flatten_gaussians, load_ply, load_source, parse_format,
                              register_exporter, save_ply)
 from splatzoo.geometry import quat_to_rotmat
 from splatzoo.io import read_ply_vertices
@@ -376,6 +376,8 @@ def test_splat_transform_round_trip(tmp_path, fmt):
     with pytest.warns() if fmt == "spz" else _no_warning():  # SPZ holds no 2DGS tag: a third scale comes back
         back = load_ply(convert_file(packed, tmp_path / f"back-{fmt}.ply"))
     assert back.name == "2dgs" and back.num_primitives == model.num_primitives
+    with pytest.warns() if fmt == "spz" else _no_warning():  # commands read SPZ and SOG files through splat-transform
+        assert load_source(packed)[0].num_primitives == model.num_primitives
     a, b = model.means.detach().numpy(), back.means.detach().numpy()
     order = ((a[:, None] - b[None]) ** 2).sum(-1).argmin(1)  # the formats may reorder the splats
     assert len(set(order.tolist())) == len(a)
@@ -415,6 +417,10 @@ def test_splat_transform_reads_our_ply(tmp_path):
     assert "gabor_weight_0" in [c["name"] for c in info["extraColumns"]]
     path = export(ply, tmp_path / "g.compressed.ply", "compressed-ply")
     assert path.read_bytes()[:3] == b"ply" and not list(tmp_path.glob(".g.*"))
+    with pytest.raises(SplatzooError, match=r"is a compressed PLY .*convert it to a plain one first"):
+        load_ply(path)
+    back, _ = load_source(path)  # the commands convert it themselves (its waves are gone: a 2dgs model)
+    assert back.name == "2dgs" and back.num_primitives == 25
 
 
 # --- commands that read model files --------------------------------------------------------------------------------
