@@ -629,7 +629,10 @@ def _suffix_ok(out: Path, suffixes: tuple[str, ...]) -> bool:
 def check_export_target(spec: ExporterSpec, out: Path, model_path: Path | None = None) -> None:
     """`--out RUN/model.pt` would replace the trained model: export writes only files with the format's suffix, and
     never over the file it reads."""
-    if spec.suffixes and not _suffix_ok(out, spec.suffixes) and not out.is_dir():
+    if out.is_dir():
+        raise SplatzooError(f"cannot write the export to {out}: it is a folder; give a file name such as "
+                            f"{out / ('model' + (spec.suffixes or ('.ply',))[0])}")
+    if spec.suffixes and not _suffix_ok(out, spec.suffixes):
         stem = out.name[:-len(out.suffix)] if out.suffix else (out.name or "model")
         suggestion = out.parent / f"{stem}{spec.suffixes[0]}"
         raise SplatzooError(f"export writes a {spec.suffixes[0][1:].upper()} file for --format {spec.name}, so --out "
