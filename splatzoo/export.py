@@ -28,12 +28,12 @@ Header comments name the splatzoo model and its config (`comment splatzoo model 
 the pixel-footprint filter, so `load_ply` rebuilds the same model. Parameters are stored exactly (float32 as trained),
 so a round trip renders identically.
 
-The third scale. Every 3DGS reader needs scale_2 (PlayCanvas and Spark refuse a file without it; GaussianSplats3D
-computes exp(undefined) = NaN), and the 2DGS-aware ones agree on what a surfel's third scale is: zero, the
-thickness along the normal, which is the third rotation column (as in our surfels). PlayCanvas splat-transform
-(3.7.0) reads a PLY without scale_2 as a 2DGS scene and fills the missing column with -Infinity, "linear 0, a
-zero-thickness surfel"; its NaN filter keeps -Infinity in scale_*, and its SOG quantiser gives -Infinity its own
-codebook slot. Spark (2.2.0) encodes a linear scale below exp(-30) as exactly zero, and with `enable2DGS` draws a
+The third scale. 3DGS readers need scale_2 (Spark 2.2.0 refuses a file without it, "Missing scale_2 property"; the
+PlayCanvas engine behind SuperSplat reads the column unconditionally; GaussianSplats3D computes exp(undefined) = NaN),
+and the 2DGS-aware ones agree on what a surfel's third scale is: zero, the thickness along the normal, which is the
+third rotation column (as in our surfels). PlayCanvas splat-transform (3.7.0) reads a PLY without scale_2 as a
+2DGS scene and fills the missing column with -Infinity, "linear 0, a zero-thickness surfel"; its NaN filter keeps
+-Infinity in scale_*, and its SOG quantiser gives -Infinity its own codebook slot. Spark (2.2.0) encodes a linear scale below exp(-30) as exactly zero, and with `enable2DGS` draws a
 splat with a zero scale as a flat surfel over the other two axes. GaussianSplats3D (0.4.7) in its 2D render mode
 overrides the third scale with 0. So we write scale_2 = -inf, log(0): every one of them reads it as exactly flat, and
 a plain 3DGS renderer gets exp(-inf) = 0, a flat Gaussian. The header also carries `comment SplatRenderMode: 2dgs`,
@@ -51,7 +51,8 @@ Reading (`load_ply`)
 - A file whose model cannot be told is an error that names what is missing, never a silent 2dgs: properties a
   splatzoo model writes (gabor_*, falloff_logit, ...) without the header, or a missing standard property. Other
   unknown properties (another tool's extras) are ignored with a warning.
-All reading and writing of the file itself goes through splatzoo.ply (plyfile).
+All reading and writing of the file itself goes through splatzoo.ply (plyfile). `load_source` (what the commands
+use) also reads run folders, .pt files and, through splat-transform, SPZ, SOG, compressed PLY, .splat and .ksplat.
 """
 from __future__ import annotations
 
