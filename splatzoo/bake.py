@@ -287,8 +287,11 @@ def split_surfels(model, cameras: list[Camera], max_splats: int, max_per_surfel:
     stretch_a = (s.scales * ea).norm(dim=-1)  # world length of one sigma-unit along each axis
     stretch_b = (s.scales * eb).norm(dim=-1)
     pixel = _pixel_size(s.means, cameras)
+    # what a surfel's waves are worth: their visible variance over the pixels the surfel covers
+    energy = (strength ** 2 * significant).sum(1) if k else s.means.new_zeros(n)
+    area = (s.scales.prod(-1) / pixel ** 2).nan_to_num(0.0, posinf=0.0)
     counts_a, counts_b = _fit_budget(2 * SPAN * ka / math.pi, 2 * SPAN * kb / math.pi, 2 * SPAN * stretch_a / pixel,
-                                     2 * SPAN * stretch_b / pixel, max_splats, max_per_surfel)
+                                     2 * SPAN * stretch_b / pixel, energy * area, max_splats, max_per_surfel)
     if int((counts_a * counts_b).sum()) > max_splats:  # more surfels than splats: keep the most visible (opacity, area)
         order = torch.argsort(s.opacities * s.scales.prod(-1), descending=True)[:max_splats]
         order = order.sort().values
@@ -298,10 +301,12 @@ def split_surfels(model, cameras: list[Camera], max_splats: int, max_per_surfel:
 
 
 def _fit_budget(wave_a: torch.Tensor, wave_b: torch.Tensor, limit_a: torch.Tensor, limit_b: torch.Tensor,
-                budget: int, cap: int):
-    """Per-surfel grid sizes (na, nb) >= 1: the waves' wanted (fractional) counts, each axis at most its pixel limit,
-    all scaled by one common factor up to MAX_DENSITY (bisection): the largest whose na x nb sum to at most
-    `budget`, each product within `cap`."""
+                value: torch.Tensor, budget: int, cap: int):
+    """Per-surfel grid sizes (na, nb) >= 1 whose products sum to at most `budget`, each within `cap`. The waves ask
+    for wave_a, wave_b (fractional counts: two splats per period), each axis at most its pixel limit. With budget to
+    spare every ask is scaled up by one common factor up to MAX_DENSITY (bisection: the largest that fits). Short of
+    it, surfels get their full ask in order of `value` per extra splat, and the rest stay whole: a wave cut into too
+    few pieces aliases, and starts the fit worse than its mean colour would."""
     def counts(factor):
         na = torch.minimum(wave_a * factor, limit_a).ceil().clamp(1, cap).long()
         nb = torch.minimum(wave_b * factor, limit_b).ceil().clamp(1, cap).long()
@@ -313,7 +318,15 @@ def _fit_budget(wave_a: torch.Tensor, wave_b: torch.Tensor, limit_a: torch.Tenso
     na, nb = counts(MAX_DENSITY)
     if int((na * nb).sum()) <= budget:
         return na, nb
-    lo, hi = 0.0, MAX_DENSITY
+    na, nb = counts(1.0)
+    if int((na * nb).sum()) > budget:
+        extra = na * nb - 1
+        order = torch.argsort(value / extra.clamp_min(1).to(value.dtype), descending=True)
+        order = order[extra[order] > 0]
+        chosen = order[torch.cumsum(extra[order], 0) <= budget - na.numel()]
+        one = torch.ones_like(na)
+        return one.index_copy(0, chosen, na[chosen]), one.index_copy(0, chosen, nb[chosen])
+    lo, hi = 1.0, MAX_DENSITY
     for _ in range(40):
         mid = (lo + hi) / 2
         a, b = counts(mid)
