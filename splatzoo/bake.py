@@ -7,9 +7,10 @@ keeps. So the bake
 
 1. starts from a split: each surfel becomes a small grid of sub-splats laid out along its strongest wave (and across
    it where other waves vary), as many per axis as the waves' frequency asks for (two per period, no finer than a
-   pixel of the closest view), within the `max_splats` budget; each sub-splat is the part of its parent's Gaussian
-   around its grid node (exact covariance, in the parent's plane) coloured with the parent's colour averaged over
-   it (the waves' Gaussian mean, which also fades waves too fine for the sub-splat);
+   pixel of the closest view), within the `max_splats` budget (short of it, the surfels whose waves show most are
+   split first and the others stay whole; with budget to spare, up to four per period); each sub-splat is the part
+   of its parent's Gaussian around its grid node (exact covariance, in the parent's plane) coloured with the
+   parent's colour averaged over it (the waves' Gaussian mean, which also fades waves too fine for the sub-splat);
 2. then fits the sub-splats to the source model's own renders (`model.render(camera)`: colour and alpha) from the
    given cameras and jittered copies of them, with the training loss (0.8 L1 + 0.2 D-SSIM) and the model's Adam
    groups (`optim_groups`);
