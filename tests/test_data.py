@@ -88,7 +88,7 @@ def test_colmap_binary_and_text_load_identically(shirt, tmp_path):
         assert torch.equal(img, torch.from_numpy(disk.copy()))
         f = vb.image_float()
         assert f.dtype == torch.float32 and torch.allclose(f, img.float() / 255)
-        assert vb.mask() is None
+        assert torch.equal(vb.mask(), vt.mask())  # the dataset's masks/, read alike
     assert torch.equal(sb.points, st.points) and torch.equal(sb.colors, st.colors)
     assert sb.points.dtype == torch.float32 and sb.colors.min() >= 0 and sb.colors.max() <= 1
     centers = torch.stack([truth[n].center for n in sorted(truth) if n in {v.name for v in sb.train}])

@@ -273,10 +273,8 @@ class View:
             photo = torch.from_numpy(px.astype(np.float32) / np.float32(255.0))
             if background is None or not self.use_mask:
                 return photo
-            new = torch.as_tensor(background, dtype=torch.float32)
-            change = new - torch.as_tensor(self.background, dtype=torch.float32)
-            if not change.any():
-                return photo
+            change = torch.as_tensor(background, dtype=torch.float32) - torch.as_tensor(self.background,
+                                                                                     dtype=torch.float32)
             return (photo + (1 - self.mask()[..., None]) * change).clamp_(0, 1)
         return self._composite(px, background)
 
