@@ -23,13 +23,11 @@ Viewer settings (tests/browser/render.js passes them through):
   gs3d 2D mode         splatRenderMode TwoD (2DGS ray-splat rendering; in 0.4.7 it draws every splat half a pixel
                        left of and below where it belongs, hence its low scores)
 PLY variants for the viewers' default dilation (see `dilation_compensated`), rendered with the default settings:
-  ... +shrink+gain     each surfel's variance (s0, s1 in px^2) less (0.3 - f) px^2 at its median training-camera
-                       scale (floored at s / 4), f = 0.1 for an anti-aliased model (its footprint), 0 otherwise;
-                       opacity times the footprint's gain sqrt(s0 s1 / ((s0 + f)(s1 + f))): aimed at 3DGS-rule
-                       viewers (GS3D, SuperSplat/PlayCanvas, SIBR)
-  ... +shrink, +gain   one of the two
-  ... +shrink+opacity  the same shrink, opacity times sqrt(s0 s1 / (s0' s1')) (clamped to 0.99): undoes Spark's
-                       Mip-Splatting rescale
+  PLY for 3DGS rule    each surfel's screen variance at its training-camera scale less (0.3 - f) px^2 (f = 0.1, the
+                       footprint, for an anti-aliased model), at least a quarter of it; opacity lowered so that
+                       the splat's mass on screen stays splatzoo's: for viewers that keep the opacity (GS3D,
+                       SuperSplat/PlayCanvas, the 3DGS SIBR viewer)
+  PLY for Mip rule     the same shrink, opacity raised to undo a Mip-Splatting rescale (Spark); clamped to 0.99
 """
 from __future__ import annotations
 
@@ -57,57 +55,66 @@ SETTINGS = [  # label, viewer, options, ply variant
     ("spark z-sort", "spark", {"sortRadial": False}, "plain"),
     ("spark blur 0.1 z-sort", "spark", {"blurAmount": 0.1, "sortRadial": False}, "plain"),
     ("spark 2DGS", "spark", {"enable2DGS": True}, "plain"),
-    ("spark default +shrink+gain", "spark", {}, "3dgs"),
-    ("spark default +shrink+opacity", "spark", {}, "mip"),
+    ("spark default, PLY for 3DGS rule", "spark", {}, "3dgs"),
+    ("spark default, PLY for Mip rule", "spark", {}, "mip"),
     ("gs3d default", "gs3d", {}, "plain"),
     ("gs3d aa", "gs3d", {"antialiased": True}, "plain"),
     ("gs3d aa 0.1", "gs3d", {"antialiased": True, "kernel2DSize": 0.1}, "plain"),
     ("gs3d 2D mode", "gs3d", {"splatRenderMode": 1}, "plain"),
-    ("gs3d default +shrink+gain", "gs3d", {}, "3dgs"),
-    ("gs3d default +shrink", "gs3d", {}, "shrink"),
-    ("gs3d default +gain", "gs3d", {}, "gain"),
+    ("gs3d default, PLY for 3DGS rule", "gs3d", {}, "3dgs"),
+    ("gs3d default, PLY for Mip rule", "gs3d", {}, "mip"),
 ]
 VIEWER_DILATION = 0.3  # px^2 both viewers add by default (Spark blurAmount, GS3D kernel2DSize)
 PIXEL_FILTER = 0.1     # px^2, splatzoo's anti-aliasing footprint (splatzoo.rasterizers.common.PIXEL_FILTER)
 
 
-def pixel_size_sq(means: torch.Tensor, cameras) -> torch.Tensor:
-    """[N] median over `cameras` of (depth / focal)^2: a surfel's world area per pixel^2 where it was trained."""
-    per = []
+def training_view_scale(means: np.ndarray, axes: np.ndarray, cameras) -> tuple[np.ndarray, np.ndarray]:
+    """Where each surfel was trained, as medians over `cameras`: px2 [N], its world area per pixel^2 ((depth /
+    focal)^2), and fore [N,2], how much of each axis' length (axes [N,3,2], unit) survives on screen squared
+    (1 - (axis . view direction)^2, at least 0.05)."""
+    px2, fore = [], []
     for cam in cameras:
-        w2c = cam.world_to_camera.double()
-        z = means.double() @ w2c[2, :3] + w2c[2, 3]
+        w2c = cam.world_to_camera.double().numpy()
+        z = means @ w2c[2, :3] + w2c[2, 3]
         f = math.sqrt(float(cam.K[0, 0]) * float(cam.K[1, 1]))
-        per.append(torch.where(z > 0.05, (z / f) ** 2, torch.nan))
-    return torch.nanmedian(torch.stack(per), dim=0).values
+        px2.append(np.where(z > 0.05, (z / f) ** 2, np.nan))
+        d = means - np.linalg.inv(w2c)[:3, 3]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        fore.append(1 - np.einsum("nk,nki->ni", d, axes) ** 2)
+    return np.nanmedian(np.stack(px2), 0), np.clip(np.median(np.stack(fore), 0), 0.05, 1.0)
 
 
-def dilation_compensated(src: Path, dst: Path, cameras, antialias: bool, mode: str) -> Path:
-    """A copy of PLY `src` whose default viewer dilation (+0.3 px^2) lands on what splatzoo renders. mode "3dgs":
-    each scale's variance less (0.3 - footprint) px^2 at the surfel's training-camera scale (floored at a quarter of
-    it) and the opacity times the footprint's gain; "shrink" or "gain": one of the two; "mip": both, and the opacity
-    also times sqrt(s0 s1 / (s0' s1')), which undoes Spark's rescale."""
+def dilation_compensated(src: Path, dst: Path, cameras, antialias: bool, rule: str) -> Path:
+    """A copy of PLY `src` meant to look, under a viewer's default +0.3 px^2 dilation, like splatzoo's render.
+
+    Per surfel, at its training-camera scale (`training_view_scale`): s_i, the variance of axis i on screen (px^2);
+    s_i' = max(s_i - (0.3 - f), s_i / 4), f = 0.1 for an anti-aliased model (its footprint), else 0, written back
+    as the scale. The opacity keeps the splat's mass (its integral on screen, o sqrt(s0 s1) in splatzoo):
+    rule "3dgs" (the viewer keeps the opacity): o' = o sqrt(s0 s1 / ((s0' + 0.3)(s1' + 0.3)));
+    rule "mip" (the viewer rescales it by sqrt(s0' s1' / ((s0' + 0.3)(s1' + 0.3))), as Spark does):
+    o' = o sqrt(s0 s1 / (s0' s1')); clamped to 0.99.
+    """
     from plyfile import PlyData, PlyElement
+
+    from splatzoo.geometry import quat_to_rotmat
 
     ply = PlyData.read(str(src))
     v = ply["vertex"].data.copy()
-    means = torch.from_numpy(np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64))
-    px2 = pixel_size_sq(means, cameras).numpy()
+    means = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
+    q = torch.from_numpy(np.stack([v[f"rot_{i}"] for i in range(4)], 1).astype(np.float64))
+    axes = quat_to_rotmat(q / q.norm(dim=1, keepdim=True)).numpy()[:, :, :2]
+    px2, fore = training_view_scale(means, axes, cameras)
     footprint = PIXEL_FILTER if antialias else 0.0
-    s2 = [np.exp(2 * v[f"scale_{i}"].astype(np.float64)) / px2 for i in (0, 1)]  # variance in px^2
-    new = [np.maximum(s - (VIEWER_DILATION - footprint), 0.25 * s) for s in s2]
-    if mode == "gain":
-        new = s2
-    gain = np.sqrt(s2[0] * s2[1] / ((s2[0] + footprint) * (s2[1] + footprint)))
-    if mode == "shrink":
-        gain = np.ones_like(gain)
-    if mode == "mip":
-        gain = gain * np.sqrt(s2[0] * s2[1] / (new[0] * new[1]))
-    opacity = 1 / (1 + np.exp(-v["opacity"].astype(np.float64)))
-    opacity = np.clip(opacity * gain, 1e-6, 0.99)
+    s = [np.exp(2 * v[f"scale_{i}"].astype(np.float64)) / px2 * fore[:, i] for i in (0, 1)]
+    new = [np.maximum(si - (VIEWER_DILATION - footprint), 0.25 * si) for si in s]
+    if rule == "3dgs":
+        gain = np.sqrt(s[0] * s[1] / ((new[0] + VIEWER_DILATION) * (new[1] + VIEWER_DILATION)))
+    else:
+        gain = np.sqrt(s[0] * s[1] / (new[0] * new[1]))
+    opacity = np.clip(gain / (1 + np.exp(-v["opacity"].astype(np.float64))), 1e-6, 0.99)
     v["opacity"] = np.log(opacity / (1 - opacity)).astype(np.float32)
     for i in (0, 1):
-        v[f"scale_{i}"] = (0.5 * np.log(new[i] * px2)).astype(np.float32)
+        v[f"scale_{i}"] = (0.5 * np.log(new[i] * px2 / fore[:, i])).astype(np.float32)
     PlyData([PlyElement.describe(v, "vertex")], text=False, comments=ply.comments).write(str(dst))
     return dst
 
@@ -167,7 +174,7 @@ def main(argv=None) -> int:
             model, scene, _ = load_run(run, "cpu")
             plys = {"plain": save_ply(model, out / f"{run.name}.ply")}
             cams = [v.camera for v in scene.train]
-            for mode in ("3dgs", "shrink", "gain", "mip"):
+            for mode in ("3dgs", "mip"):
                 plys[mode] = dilation_compensated(plys["plain"], out / f"{run.name}.{mode}.ply", cams, antialias, mode)
             bg = tuple(float(c) for c in model.background) if model.background is not None else (1.0, 1.0, 1.0)
             rows = {s[0]: [] for s in SETTINGS}
