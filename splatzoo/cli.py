@@ -154,6 +154,19 @@ def synth_command(
 
 # --- rasterizer benchmark (splatzoo bench) ----------------------------------------------------------------
 # (bench command goes here)
+def _bench_module(name: str):
+    """benchmarks/<name>.py of the source checkout, imported."""
+    import importlib.util
+
+    bench_file = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    if not bench_file.is_file():
+        raise SplatzooError(f"{bench_file} not found: `splatzoo bench` runs from a source checkout of splatzoo")
+    spec = importlib.util.spec_from_file_location(f"splatzoo_{name}", bench_file)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 @app.command("bench")
 def bench_command(
     json_path: str = typer.Option("benchmarks/results/rasterizer.json", "--json", help="Where to write the JSON results."),
@@ -165,12 +178,31 @@ def bench_command(
     fps: Optional[Path] = typer.Option(None, "--fps", metavar="RUN",
                                        help="Instead: the frame rate of a trained run, at its test views' size and at "
                                        "1080 lines, image-only (as a viewer shows it) and with every output."),
-    backend: str = typer.Option("auto", "--backend", help="The backend of --fps: auto, cpu or cuda."),
+    backend: str = typer.Option("auto", "--backend", help="The backend of --fps and --training: auto, cpu or cuda."),
+    training: bool = typer.Option(False, "--training", help="Instead: whole training runs of 2dgs and gabor at paper "
+                                  "scale (benchmarks/bench_training.py): time, it/s, metrics, peak GPU memory, and a "
+                                  "breakdown of a step."),
+    data: Optional[Path] = typer.Option(None, "--data", help="--training: a dataset (default: a synthetic scene)."),
+    size: str = typer.Option("1920x1080", "--size", help="--training: the synthetic scene's WIDTHxHEIGHT."),
+    views: int = typer.Option(120, "--views", help="--training: the synthetic scene's views."),
+    iterations: int = typer.Option(30000, "--iterations", help="--training: iterations per model."),
+    models: str = typer.Option("2dgs,gabor", "--models", help="--training: comma-separated models."),
+    gsplat_examples: Optional[Path] = typer.Option(None, "--gsplat-examples", help="--training: gsplat's examples "
+                                                   "folder, to run its 2DGS trainer on the same data too."),
 ) -> None:
     """Benchmark the rasterizer backends (forward, forward+backward, pairs per second) and write a JSON report; or,
-    with --fps RUN, the frame rate of a trained run."""
-    import importlib.util
-
+    with --fps RUN, the frame rate of a trained run; or, with --training, whole training runs."""
+    if training:
+        width, _, height = size.lower().partition("x")
+        if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+            raise SplatzooError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 1920x1080; got {size!r}")
+        argv = ["--width", width, "--height", height, "--views", str(views), "--iterations", str(iterations),
+                "--models", models, "--backend", backend]
+        argv += ["--data", str(data)] if data is not None else []
+        argv += ["--gsplat-examples", str(gsplat_examples)] if gsplat_examples is not None else []
+        argv += ["--json", json_path] if json_path != "benchmarks/results/rasterizer.json" else []
+        _bench_module("bench_training").run(argv, echo=typer.echo)
+        return
     if fps is not None:
         from .evaluate import fps_report
         from .runs import load_run
@@ -182,14 +214,9 @@ def bench_command(
                        f"{row['fps_full']:7.2f} FPS with every output ({backend} backend)")
         return
 
-    bench_file = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_rasterizer.py"
-    if not bench_file.is_file():
-        raise SplatzooError(f"{bench_file} not found: `splatzoo bench` runs from a source checkout of splatzoo")
     if quick and gpu:
         raise SplatzooError("--quick and --gpu choose different scenes: pass one of them")
-    spec = importlib.util.spec_from_file_location("splatzoo_bench_rasterizer", bench_file)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _bench_module("bench_rasterizer")
     configs = bench.CONFIGS[:2] if quick else bench.GPU_CONFIGS if gpu else bench.CONFIGS
     bench.run_benchmark(backends=backends.split(",") if backends else None, waves=tuple(waves.split(",")),
                         configs=configs, repeats=repeats, json_path=json_path, echo=typer.echo)

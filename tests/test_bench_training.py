@@ -39,3 +39,12 @@ def test_training_benchmark_runs_end_to_end_with_a_breakdown(tmp_path):
 
     assert not hasattr(View.image_float, "__wrapped__") and View.image_float.__qualname__ == "View.image_float"
     assert trainer.photometric_loss.__module__ != BENCH.stem and native._RenderFn.forward.__name__ == "forward"
+
+
+def test_bench_training_command_checks_its_size():
+    from typer.testing import CliRunner
+
+    from splatzoo.cli import app
+
+    r = CliRunner().invoke(app, ["bench", "--training", "--size", "1920by1080"])
+    assert r.exit_code != 0 and "WIDTHxHEIGHT" in str(r.exception)
