@@ -665,11 +665,7 @@ def _load_options(record: dict) -> dict:
     opts = dict(record.get("scene_options", {}))
     if isinstance(opts.get("background"), list):
         opts["background"] = tuple(opts["background"])
-    opts = {k: v for k, v in opts.items() if v is not None}
-    scene = record.get("scene")
-    if isinstance(scene, dict) and "random_background" not in scene:
-        opts["masks"] = False  # a run from before masks taught opaque surfaces: resumed and scored as it was made
-    return opts
+    return {k: v for k, v in opts.items() if v is not None}
 
 
 def _check_adam_groups(optimizer) -> None:

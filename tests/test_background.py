@@ -40,7 +40,7 @@ def white_scene_without_masks(white_scene, tmp_path_factory):
 
 
 def test_auto_finds_a_white_backdrop(white_scene_without_masks, tmp_path):
-    white_scene = white_scene_without_masks
+    white_scene = white_scene_without_masks  # (random needs alpha or masks)
     scene = load_scene(white_scene)
     assert scene.background == (1.0, 1.0, 1.0) and not scene.random_background
     assert "white" in scene.background_note and all(v.background == (1.0, 1.0, 1.0) for v in scene.views)
@@ -69,25 +69,25 @@ def test_masks_replace_the_backdrop_exactly(tmp_path):
         assert torch.equal(w.image_float(background=(1.0, 1.0, 1.0)), w.image_float())
 
 
-def test_auto_with_masks_learns_opaque_surfaces(white_scene, white_scene_without_masks, tmp_path):
-    """auto over a white backdrop with masks: a new colour behind the object each step (through the masks), the model
-    renders over white; without masks, or with an explicit colour, the backdrop stays fixed."""
-    scene = load_scene(white_scene)
+def test_random_with_masks_replaces_the_backdrop(white_scene, white_scene_without_masks, tmp_path):
+    """--background random over a white backdrop with masks: a new colour behind the object each step (through the
+    masks), the model renders over white; auto keeps the backdrop fixed (masks are read, for eval's opacity)."""
+    scene = load_scene(white_scene, background="random")
     assert scene.background == (1.0, 1.0, 1.0) and scene.random_background and scene.masked_backdrop
-    assert "masks" in scene.background_note and "opaque" in scene.background_note
-    assert not load_scene(white_scene, masks=False).random_background
-    assert not load_scene(white_scene, background="white").random_background
-    assert load_scene(white_scene, background="random").masked_backdrop
-    assert not load_scene(white_scene_without_masks).random_background
+    assert "masks" in scene.background_note and "white" in scene.background_note
+    auto = load_scene(white_scene)
+    assert not auto.random_background and all(v.use_mask for v in auto.views)
+    assert not load_scene(white_scene, masks=False).train[0].use_mask
+    with pytest.raises(SplatzooError, match="alpha.*or masks"):
+        load_scene(white_scene_without_masks, background="random")
     cfg = TrainConfig(iterations=6, backend="cpu", num_primitives=200, densify=False)
-    run = train(white_scene, "2dgs", {}, cfg, tmp_path / "auto", progress=False, evaluate_at_end=False)
+    run = train(white_scene, "2dgs", {}, cfg, tmp_path / "random", progress=False, evaluate_at_end=True,
+                scene_options={"background": "random"})
     assert run.model.background == (1.0, 1.0, 1.0)
-    from splatzoo.runs import Run, _load_options
+    assert 0 <= run.metrics["object_alpha"] <= 1  # eval measures the opacity inside the masks
+    from splatzoo.runs import Run
 
-    record = Run(tmp_path / "auto").record()
-    assert record["scene"]["random_background"] is True and "masks" not in _load_options(record)
-    old = {**record, "scene": {k: v for k, v in record["scene"].items() if k != "random_background"}}
-    assert _load_options(old)["masks"] is False  # runs made before masks were used resume and score as made
+    assert Run(tmp_path / "random").record()["scene"]["random_background"] is True
 
 
 def test_random_needs_one_backdrop_colour_to_replace(tmp_path):
@@ -117,9 +117,8 @@ def test_auto_keeps_a_colour_the_scene_is_made_of():
     assert colour == (0.0, 0.0, 0.0) and "no common colour" in note
 
 
-def test_no_flag_trains_as_the_right_explicit_one(white_scene_without_masks, tmp_path):
-    """On a white backdrop without masks, auto is white: the same run, bit for bit, as --background white."""
-    white_scene = white_scene_without_masks
+def test_no_flag_trains_as_the_right_explicit_one(white_scene, tmp_path):
+    """On a white backdrop (with masks), auto is white: the same run, bit for bit, as --background white."""
     cfg = TrainConfig(iterations=15, backend="cpu", num_primitives=300, densify=False)
     auto = train(white_scene, "gabor", {}, cfg, tmp_path / "auto", progress=False, evaluate_at_end=False).model
     white = train(white_scene, "gabor", {}, cfg, tmp_path / "white", progress=False, evaluate_at_end=False,

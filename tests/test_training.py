@@ -31,7 +31,7 @@ def small_config(**kw):
 
 
 def test_training_raises_test_psnr(tiny_data, tmp_path):
-    scene = load_scene(tiny_data, masks=False)  # over its backdrop: the logged train PSNR without random colours
+    scene = load_scene(tiny_data)
     result = train(scene, "gabor", {}, small_config(iterations=150, densify=False), tmp_path / "run", progress=False)
     log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
     first = [r["train_psnr"] for r in log if "train_psnr" in r][:3]
@@ -192,7 +192,7 @@ def test_random_downscale_trains_some_views_smaller(tiny_data, monkeypatch):
     from splatzoo.training.trainer import DOWNSCALES, Trainer
     from splatzoo.zoo import make_config
 
-    scene = load_scene(tiny_data, masks=False)  # 48 px views, over their backdrop
+    scene = load_scene(tiny_data)  # 48 px views
     monkeypatch.setattr(trainer_module, "MIN_DOWNSCALED_SIDE", 12)
     cfg = small_config(iterations=20, densify=False, antialias=True, random_downscale=0.5, backend="cpu")
     t = Trainer.start(scene, "gabor", make_config("gabor"), cfg, "cpu", torch.device("cpu"))

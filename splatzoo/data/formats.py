@@ -90,7 +90,7 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     RGBA images: "auto" (found in the images, see data/background.py), "random", "black", "white", "R,G,B" or an RGB
     tuple in [0,1]; the scene says what it chose in `background_note`.
     masks: expose per-view masks (masks/<name> files, else the image alpha channel); "auto": when the folder has
-    masks/ (with the background chosen from the images they then teach opaque surfaces, see data/background.py).
+    masks/.
     format: a registered format name, to skip detection.
     skip_missing: leave out the frames of a transforms file whose image is missing (scene.notes lists them) instead
     of stopping with an error; formats whose reader has no such option say so in scene.notes.
@@ -113,9 +113,8 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     capped = resolution is None and max_width is None  # large photos are downscaled unless asked otherwise
     reader = FORMATS.get(format).load
     skipping = _takes(reader, "skip_missing")
-    # masks="auto": a dataset's masks/ are read when present (the background chosen from the images then teaches
-    # opaque surfaces through them, see data/background.py; eval measures opacity on them); incomplete masks are left
-    # out, not an error
+    # masks="auto": a dataset's masks/ are read when present (eval measures opacity inside them; --background random
+    # replaces the backdrop through them, see data/background.py); incomplete masks are left out, not an error
     auto_masks = masks == "auto"
     if auto_masks:
         masks = (path / "masks").is_dir()
