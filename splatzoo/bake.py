@@ -609,5 +609,6 @@ def export_baked(source, out, *, progress=None, **options) -> Path:
         raise SplatzooError(f"refusing to write the bake onto the model being read ({path}); choose another --out")
     baked, report = bake_model(model, cameras, opts, progress=progress)
     path = save_ply(baked, out)
-    _say(progress)(f"wrote {path}: {report['splats']} splats, bake error {report['bake_db']:.2f} dB")
+    _say(progress)(f"baked {report['splats']} splats, bake error {report['bake_db']:.2f} dB (PSNR against the "
+                   "model's own renders)")
     return path

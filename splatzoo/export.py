@@ -690,7 +690,7 @@ def export_ply(source, out, *, progress=None, ascii: bool = False) -> Path:
     check_export_target(EXPORTERS.get("ply"), out, model_path)
     path = save_ply(model, out, text=ascii)
     if progress:
-        progress(f"wrote {model.num_primitives} {model.name} primitives to {path}")
+        progress(f"{model.num_primitives} {model.name} primitives")
     return path
 
 
