@@ -4,16 +4,22 @@ Make a run, then mesh and score it (CPU, a few minutes on 2 cores):
 
     nice -n 10 env OMP_NUM_THREADS=1 splatzoo synth sweater --out /tmp/tmesh/data --views 24 --width 128 --height 128
     nice -n 10 env OMP_NUM_THREADS=1 splatzoo train /tmp/tmesh/data --model gabor --iterations 1500 --out /tmp/tmesh/gabor
-    nice -n 10 env OMP_NUM_THREADS=1 python benchmarks/bench_mesh_texture.py /tmp/tmesh/gabor --texture-size 1024
+    nice -n 10 env OMP_NUM_THREADS=1 python benchmarks/bench_mesh_texture.py /tmp/tmesh/gabor
+    nice -n 10 env OMP_NUM_THREADS=1 python benchmarks/bench_mesh_texture.py /tmp/tmesh/gabor --voxel-scale 1
 
-The mesh is extracted once from the training views (splatzoo.mesh defaults) and textured from the same views; the
-test views (never used for baking) are then rendered three ways: the model itself, the vertex-coloured mesh and the
-textured mesh (ray cast, one ray per pixel centre, unlit; `splatzoo.mesh_texture.render_mesh`), all over the
-scene's background. PSNR is taken over the object pixels: where the model's alpha (>= 0.5) or the mesh's coverage
-says there is an object ("object": holes and silhouette differences of the mesh count), and over the pixels where
-both do ("both": the colour alone). "vs model" compares a mesh render with the model's render, "vs truth" with the test image; the
-model's own PSNR against the truth is printed for scale. The textured GLB is written and read back before scoring,
-so the numbers are those of the file.
+The second run meshes with extract-mesh's own voxel (half a pixel; 254k triangles, simplified to 50k for the
+atlas).
+
+The mesh is extracted once from the training views, with the export's voxel (2 x extract-mesh's default, about a
+pixel; --voxel-size sets it), and textured from the same views; the test views (never used for baking) are then
+rendered three ways: the model itself, the vertex-coloured mesh and the textured mesh (ray cast with 2 x 2 rays per
+pixel, unlit; `splatzoo.mesh_texture.render_mesh`), all over the scene's background. A mesh above --max-triangles
+is also scored with vertex colours after the same simplification the texture gets. PSNR is taken over the object
+pixels: where the model's alpha (>= 0.5) or the mesh's coverage says there is an object ("object": holes and
+silhouette differences of the mesh count), and over the pixels where both do ("both": the colour alone). "vs model"
+compares a mesh render with the model's render, "vs truth" with the test image; the model's own PSNR against the
+truth is printed for scale. The textured GLB is written and read back (trimesh) before scoring, so the numbers are
+those of the file.
 """
 from __future__ import annotations
 
@@ -28,6 +34,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from splatzoo.mesh_texture import TexturedMesh, TexturedMeshOptions, render_mesh, texture_mesh, write_glb  # noqa: E402
+
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     mse = float(((a[mask] - b[mask]) ** 2).mean())
@@ -37,8 +45,6 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
 def read_glb(path: Path):
     """A TexturedMesh back from our GLB (through trimesh, an independent reader)."""
     import trimesh
-
-    from splatzoo.mesh_texture import TexturedMesh
 
     tm = trimesh.load(path, force="mesh", process=False)
     img = np.asarray(tm.visual.material.baseColorTexture.convert("RGB"))
@@ -54,12 +60,15 @@ def main() -> None:
     ap.add_argument("--max-triangles", type=int, nargs="+", default=[50000])
     ap.add_argument("--sharpness", type=float, nargs="+", default=[1.0])
     ap.add_argument("--render-scale", type=float, nargs="+", default=[1.0])
+    ap.add_argument("--samples", type=int, default=2, help="rays per pixel side when rendering the meshes")
+    ap.add_argument("--voxel-size", type=float, help="TSDF voxel (default: --voxel-scale x extract-mesh's)")
+    ap.add_argument("--voxel-scale", type=float, default=TexturedMeshOptions.voxel_scale,
+                    help="voxel as a multiple of extract-mesh's default (the export's default)")
     ap.add_argument("--no-vertex", action="store_true", help="skip the vertex-coloured mesh")
     ap.add_argument("--save", type=Path, help="folder for the comparison images of the first test view")
     args = ap.parse_args()
 
-    from splatzoo.mesh import extract_mesh
-    from splatzoo.mesh_texture import TexturedMesh, render_mesh, texture_mesh, write_glb
+    from splatzoo.mesh import extract_mesh, mesh_parameters
     from splatzoo.runs import Run
 
     torch.set_num_threads(1)
@@ -68,7 +77,8 @@ def main() -> None:
     tests = scene.test
     bg = np.asarray(scene.background, np.float32)
     t0 = time.perf_counter()
-    mesh, params, stats = extract_mesh(model, train)
+    voxel = args.voxel_size or args.voxel_scale * mesh_parameters(train).voxel_size
+    mesh, params, stats = extract_mesh(model, train, voxel_size=voxel)
     print(f"TSDF mesh: {stats.vertices} vertices, {stats.triangles} triangles, voxel {params.voxel_size:.4g} "
           f"({time.perf_counter() - t0:.1f} s); {len(train)} training views baked, {len(tests)} test views scored")
     vc = TexturedMesh.from_open3d(mesh)
@@ -84,7 +94,7 @@ def main() -> None:
     def score(m, name):
         rows = {"object": ([], [], []), "both": ([], [], [])}
         for (ref, alpha, gt), v in zip(refs, tests):
-            img, hit = render_mesh(m, v.camera, background=bg)
+            img, hit = render_mesh(m, v.camera, background=bg, samples=args.samples)
             gt = np.asarray(gt, np.float32)
             for key, mask in (("object", alpha | hit), ("both", alpha & hit)):
                 pm, pt, pgt = rows[key]
@@ -125,8 +135,8 @@ def main() -> None:
 
             args.save.mkdir(parents=True, exist_ok=True)
             ref, _, gt = refs[0]
-            a, _ = render_mesh(vc, tests[0].camera, background=bg)
-            b, _ = render_mesh(back, tests[0].camera, background=bg)
+            a, _ = render_mesh(vc, tests[0].camera, background=bg, samples=args.samples)
+            b, _ = render_mesh(back, tests[0].camera, background=bg, samples=args.samples)
             row = np.concatenate([np.asarray(gt, np.float32), ref, a, b], 1)
             Image.fromarray((np.clip(row, 0, 1) * 255).round().astype(np.uint8)).resize(
                 (row.shape[1] * 2, row.shape[0] * 2), Image.NEAREST).save(args.save / "mesh_texture.png")
