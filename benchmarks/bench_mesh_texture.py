@@ -129,7 +129,8 @@ def main() -> None:
                     score(back, f"texture {args.texture_size}, {tex.info['triangles']} triangles, sharpness {sharp:g}, "
                           f"render scale {rs:g} ({secs:.0f} s, {cpu:.0f} s CPU)")
                     print(f"    {tex.info['surface_seen']:.1%} of the surface seen, "
-                          f"{tex.info['mean_views_per_texel']:.1f} views per texel, GLB {path.stat().st_size / 1e6:.1f} MB")
+                          f"{tex.info['mean_views_per_texel']:.1f} views per texel, "
+                          f"GLB {path.stat().st_size / 1e6:.1f} MB")
         if args.save:
             from PIL import Image
 

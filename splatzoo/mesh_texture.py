@@ -178,10 +178,10 @@ def make_options(options: dict | TexturedMeshOptions | None = None, **more) -> T
 
 @dataclass
 class TexturedMesh:
-    """A triangle mesh ready to write. positions [V,3] float32, faces [F,3] int64 (counter-clockwise seen from
-    outside), normals [V,3] or None, uvs [V,2] float32 in [0,1] (glTF convention: v = 0 is the top row of the
-    texture) or None, texture [H,W,3] uint8 or None, colors [V,3] float32 in [0,1] (vertex colours) or None.
-    With a texture the vertex colours are not written (glTF would multiply them into the texture)."""
+    """A triangle mesh ready to write. positions [V,3] float32, faces [F,3] int64 (wound as the mesh came; the GLB
+    material is double sided), normals [V,3] or None, uvs [V,2] float32 in [0,1] (glTF convention: v = 0 is the
+    top row of the texture) or None, texture [H,W,3] uint8 or None, colors [V,3] float32 in [0,1] (vertex
+    colours) or None. With a texture the vertex colours are not written (glTF would multiply them into it)."""
 
     positions: np.ndarray
     faces: np.ndarray
@@ -244,7 +244,7 @@ def uv_atlas(positions: np.ndarray, faces: np.ndarray, texture_size: int, paddin
     if atlas.atlas_count != 1:
         raise SplatzooError(f"the UV atlas did not fit into one {texture_size}x{texture_size} texture "
                             f"({atlas.atlas_count} pages); use a larger texture_size or a smaller padding")
-    vmapping, indices, uvs = atlas[0] if hasattr(atlas, "__getitem__") else atlas.get_mesh(0)
+    vmapping, indices, uvs = atlas[0]
     return (np.asarray(vmapping, dtype=np.int64), np.asarray(indices, dtype=np.int64).reshape(-1, 3),
             np.asarray(uvs, dtype=np.float32))
 
@@ -455,7 +455,8 @@ def texture_mesh(mesh, model, cameras: list[Camera], options: TexturedMeshOption
                  progress=None) -> TexturedMesh:
     """A UV-atlased copy of `mesh` (open3d legacy TriangleMesh or TexturedMesh) with a texture baked from
     `model`'s renders seen from `cameras` (see the module docstring). info holds what the bake saw.
-    A TexturedMesh that has UVs keeps them (it is baked again, e.g. with other options or views)."""
+    A TexturedMesh that has UVs keeps them (it is baked again, e.g. with other options or views); only an open3d
+    mesh is simplified to `max_triangles`."""
     opts = make_options(options)
     say = _say(progress)
     if not cameras:
@@ -741,6 +742,8 @@ def render_mesh(mesh: TexturedMesh, camera: Camera, background=(0.0, 0.0, 0.0), 
     unlit. samples: rays per pixel side (1: through the pixel centre; s: an s x s grid averaged, which
     anti-aliases edges and a texture seen from afar). Returns (rgb [H,W,3] float32, coverage mask [H,W] bool:
     at least half the pixel's rays hit)."""
+    if not isinstance(samples, int) or samples < 1:
+        raise SplatzooError(f"render_mesh: samples must be a whole number >= 1, got {samples!r}")
     if samples > 1:
         rgb, hit = render_mesh(mesh, camera.scaled(samples), background, samples=1)
         H, W = camera.height, camera.width

@@ -10,7 +10,7 @@ import torch
 from splatzoo import Camera, create_model
 from splatzoo.errors import SplatzooError
 from splatzoo.mesh import extract_mesh, write_mesh
-from splatzoo.mesh_texture import (TexturedMesh, TexturedMeshOptions, export_textured_mesh, glb_bytes, make_options,
+from splatzoo.mesh_texture import (TexturedMesh, TexturedMeshOptions, export_textured_mesh, make_options,
                                    render_mesh, texture_mesh, write_glb, write_obj)
 
 STRIPE_PERIOD = 0.25  # world units: about 10 pixels in the 64-pixel views
