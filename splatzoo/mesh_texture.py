@@ -50,6 +50,11 @@ INVALID = 0xFFFFFFFF          # open3d's RaycastingScene id for "no hit"
 MIN_TEXTURE, MAX_TEXTURE = 16, 16384
 
 
+def _opt(default, help: str):
+    """A dataclass field with its one-line help (shown by `splatzoo export --list`)."""
+    return field(default=default, metadata={"help": help})
+
+
 @dataclass
 class TexturedMeshOptions:
     """How a run is meshed and textured (`splatzoo export RUN --format mesh-glb:texture_size=1024`).
@@ -79,22 +84,25 @@ class TexturedMeshOptions:
     backend: rasterizer for the renders ("auto", "reference", "cpu", "cuda").
     """
 
-    texture_size: int = 2048
-    padding: int = 4
-    max_triangles: int = 50000
-    voxel_size: float | None = None
-    voxel_scale: float = 2.0
-    sdf_trunc: float | None = None
-    depth_trunc: float | None = None
-    depth: str = "median"
-    alpha_threshold: float = 0.5
-    keep_largest: bool = False
-    views: str = "train"
-    render_scale: float = 1.0
-    sharpness: float = 1.0
-    occlusion_tolerance: float | None = None
-    unlit: bool = True
-    backend: str = "auto"
+    texture_size: int = _opt(2048, "side of the square texture in texels (16-16384)")
+    padding: int = _opt(4, "texels between atlas charts")
+    max_triangles: int = _opt(50000, "simplify a larger mesh to this many triangles first (0: keep all)")
+    voxel_size: float | None = _opt(None, "TSDF voxel in world units (default: voxel_scale x extract-mesh's)")
+    voxel_scale: float = _opt(2.0, "default voxel as a multiple of extract-mesh's (half a pixel there)")
+    sdf_trunc: float | None = _opt(None, "TSDF truncation in world units (default 5 voxels)")
+    depth_trunc: float | None = _opt(None, "ignore depth beyond this (default 2 x the camera distance)")
+    depth: str = _opt("median", "depth fused into the TSDF: median or expected")
+    alpha_threshold: float = _opt(0.5, "pixels below this alpha are not fused or sampled")
+    keep_largest: bool = _opt(False, "keep only the largest connected part of the mesh")
+    views: str = _opt("train", "views baked from: train or all (train + test)")
+    render_scale: float = _opt(1.0, "render the views at this multiple of their resolution for baking")
+    sharpness: float = _opt(1.0, "power of the per-view weight (larger: closer to the best view only)")
+    occlusion_tolerance: float | None = _opt(None, "depth agreement for a view to see a texel (default 3 edges)")
+    unlit: bool = _opt(True, "mark the GLB material KHR_materials_unlit")
+    backend: str = _opt("auto", "rasterizer for the renders: auto, reference, cpu, cuda")
+
+    def __post_init__(self):
+        self.validate()
 
     def validate(self) -> "TexturedMeshOptions":
         def bad(name, want):
