@@ -710,7 +710,6 @@ def export_textured_mesh(source, out, *, progress=None, **options) -> Path:
     if out.is_dir():
         raise SplatzooError(f"cannot write the mesh to {out}: it is a folder; give a file name such as "
                             f"{out / 'mesh.glb'}")
-    say = _say(progress)
     run = Run(source)
     with run.writing("splatzoo export", out, "--out FILE.glb"):
         model, scene, _ = run.load(opts.backend)
@@ -725,8 +724,7 @@ def export_textured_mesh(source, out, *, progress=None, **options) -> Path:
         views = train if opts.views == "train" else train + [v.camera for v in scene.test]
         textured = texture_mesh(mesh, model, views, opts, progress=progress)
         write_textured_mesh(textured, out, unlit=opts.unlit)
-    say(f"wrote {out}")
-    return out
+    return out   # `splatzoo export` says where it wrote
 
 
 # --- a small renderer, to look at and score a mesh -----------------------------------------------------------
