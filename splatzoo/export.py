@@ -609,8 +609,10 @@ def describe_format(spec: ExporterSpec) -> str:
         default = f.default if f.default is not dataclasses.MISSING else (
             f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
         typ = hints.get(f.name, str)
-        rows.append(f"    {f.name}={getattr(typ, '__name__', str(typ)).upper()}  {f.metadata.get('help', '')} "
-                    f"(default {default})")
+        text = f.metadata.get("help", "")
+        said = "(default" in text  # a help that states its own default
+        rows.append(f"    {f.name}={getattr(typ, '__name__', str(typ)).upper()}  {text}"
+                    + ("" if said else f" (default {default})"))
     return "\n".join(rows) if rows else "    (no options)"
 
 
@@ -753,4 +755,8 @@ register_exporter(ExporterSpec(
     "wave models baked into plain 2DGS surfels in a standard PLY, for viewers that know no Gabor waves", (".ply",)))
 register_exporter(ExporterSpec(
     "mesh-glb", "splatzoo.mesh_texture:export_textured_mesh", "splatzoo.mesh_texture:TexturedMeshOptions",
-    "a textured triangle mesh (glTF binary) extracted from the model", (".glb",)))
+    "a textured triangle mesh (glTF binary): the TSDF mesh with a UV atlas and a texture baked from the model's "
+    "renders", (".glb",)))
+register_exporter(ExporterSpec(
+    "mesh-obj", "splatzoo.mesh_texture:export_textured_mesh", "splatzoo.mesh_texture:TexturedMeshOptions",
+    "the textured mesh as OBJ + MTL + PNG (written beside each other)", (".obj",)))
