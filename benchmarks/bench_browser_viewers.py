@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -64,59 +63,17 @@ SETTINGS = [  # label, viewer, options, ply variant
     ("gs3d default, PLY for 3DGS rule", "gs3d", {}, "3dgs"),
     ("gs3d default, PLY for Mip rule", "gs3d", {}, "mip"),
 ]
-VIEWER_DILATION = 0.3  # px^2 both viewers add by default (Spark blurAmount, GS3D kernel2DSize)
-PIXEL_FILTER = 0.1     # px^2, splatzoo's anti-aliasing footprint (splatzoo.rasterizers.common.PIXEL_FILTER)
 
 
-def training_view_scale(means: np.ndarray, axes: np.ndarray, cameras) -> tuple[np.ndarray, np.ndarray]:
-    """Where each surfel was trained, as medians over `cameras`: px2 [N], its world area per pixel^2 ((depth /
-    focal)^2), and fore [N,2], how much of each axis' length (axes [N,3,2], unit) survives on screen squared
-    (1 - (axis . view direction)^2, at least 0.05)."""
-    px2, fore = [], []
-    for cam in cameras:
-        w2c = cam.world_to_camera.double().numpy()
-        z = means @ w2c[2, :3] + w2c[2, 3]
-        f = math.sqrt(float(cam.K[0, 0]) * float(cam.K[1, 1]))
-        px2.append(np.where(z > 0.05, (z / f) ** 2, np.nan))
-        d = means - np.linalg.inv(w2c)[:3, 3]
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        fore.append(1 - np.einsum("nk,nki->ni", d, axes) ** 2)
-    return np.nanmedian(np.stack(px2), 0), np.clip(np.median(np.stack(fore), 0), 0.05, 1.0)
+def dilation_compensated(src: Path, dst: Path, cameras, rule: str) -> Path:
+    """A copy of PLY `src` made for a viewer's default +0.3 px^2 dilation under `rule` ("3dgs": the viewer keeps the
+    opacity; "mip": it rescales it): splatzoo.export.compensate_viewer_dilation, what `splatzoo export --format
+    ply:viewer=3dgs` writes."""
+    from splatzoo.export import compensate_viewer_dilation, load_ply, save_ply
 
-
-def dilation_compensated(src: Path, dst: Path, cameras, antialias: bool, rule: str) -> Path:
-    """A copy of PLY `src` meant to look, under a viewer's default +0.3 px^2 dilation, like splatzoo's render.
-
-    Per surfel, at its training-camera scale (`training_view_scale`): s_i, the variance of axis i on screen (px^2);
-    s_i' = max(s_i - (0.3 - f), s_i / 4), f = 0.1 for an anti-aliased model (its footprint), else 0, written back
-    as the scale. The opacity keeps the splat's mass (its integral on screen, o sqrt(s0 s1) in splatzoo):
-    rule "3dgs" (the viewer keeps the opacity): o' = o sqrt(s0 s1 / ((s0' + 0.3)(s1' + 0.3)));
-    rule "mip" (the viewer rescales it by sqrt(s0' s1' / ((s0' + 0.3)(s1' + 0.3))), as Spark does):
-    o' = o sqrt(s0 s1 / (s0' s1')); clamped to 0.99.
-    """
-    from plyfile import PlyData, PlyElement
-
-    from splatzoo.geometry import quat_to_rotmat
-
-    ply = PlyData.read(str(src))
-    v = ply["vertex"].data.copy()
-    means = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
-    q = torch.from_numpy(np.stack([v[f"rot_{i}"] for i in range(4)], 1).astype(np.float64))
-    axes = quat_to_rotmat(q / q.norm(dim=1, keepdim=True)).numpy()[:, :, :2]
-    px2, fore = training_view_scale(means, axes, cameras)
-    footprint = PIXEL_FILTER if antialias else 0.0
-    s = [np.exp(2 * v[f"scale_{i}"].astype(np.float64)) / px2 * fore[:, i] for i in (0, 1)]
-    new = [np.maximum(si - (VIEWER_DILATION - footprint), 0.25 * si) for si in s]
-    if rule == "3dgs":
-        gain = np.sqrt(s[0] * s[1] / ((new[0] + VIEWER_DILATION) * (new[1] + VIEWER_DILATION)))
-    else:
-        gain = np.sqrt(s[0] * s[1] / (new[0] * new[1]))
-    opacity = np.clip(gain / (1 + np.exp(-v["opacity"].astype(np.float64))), 1e-6, 0.99)
-    v["opacity"] = np.log(opacity / (1 - opacity)).astype(np.float32)
-    for i in (0, 1):
-        v[f"scale_{i}"] = (0.5 * np.log(new[i] * px2 / fore[:, i])).astype(np.float32)
-    PlyData([PlyElement.describe(v, "vertex")], text=False, comments=ply.comments).write(str(dst))
-    return dst
+    model = load_ply(src)
+    compensate_viewer_dilation(model, cameras, rule)
+    return save_ply(model, dst)
 
 
 def save_strip(images, path: Path, gap: int = 2) -> None:
@@ -175,7 +132,7 @@ def main(argv=None) -> int:
             plys = {"plain": save_ply(model, out / f"{run.name}.ply")}
             cams = [v.camera for v in scene.train]
             for mode in ("3dgs", "mip"):
-                plys[mode] = dilation_compensated(plys["plain"], out / f"{run.name}.{mode}.ply", cams, antialias, mode)
+                plys[mode] = dilation_compensated(plys["plain"], out / f"{run.name}.{mode}.ply", cams, mode)
             bg = tuple(float(c) for c in model.background) if model.background is not None else (1.0, 1.0, 1.0)
             rows = {s[0]: [] for s in SETTINGS}
             own_gt, strip = [], []

@@ -201,9 +201,9 @@ def model_columns(model) -> dict[str, np.ndarray]:
     return columns
 
 
-def save_ply(model, path, *, text: bool = False) -> Path:
-    """Write `model` as a binary (or, with text=True, ASCII) PLY in the layout of the module docstring, atomically.
-    Returns the path."""
+def save_ply(model, path, *, text: bool = False, comments: tuple[str, ...] = ()) -> Path:
+    """Write `model` as a binary (or, with text=True, ASCII) PLY in the layout of the module docstring, atomically,
+    with `comments` added to the header. Returns the path."""
     from . import __version__
 
     path = Path(path)
@@ -219,14 +219,14 @@ def save_ply(model, path, *, text: bool = False) -> Path:
     arr = np.empty(n, dtype=[(k, "<f4") for k in columns])
     for k, v in columns.items():
         arr[k] = v
-    comments = [f"splatzoo {__version__} ply export, format {FORMAT_VERSION}",
-                f"splatzoo model {name}",
+    extra = list(comments)
+    comments = [f"splatzoo {__version__} ply export, format {FORMAT_VERSION}", f"splatzoo model {name}",
                 f"splatzoo config {json.dumps(_config_dict(model), separators=(',', ':'), default=str)}"]
     if getattr(model, "antialias", False):  # rendered with the pixel-footprint filter (absent: without)
         comments.append("splatzoo antialias true")
     if "scale_2" in columns and np.all(columns["scale_2"] == FLAT_LOG_SCALE):
         comments.append(RENDER_MODE_COMMENT)
-    return write_ply_vertices(path, arr, comments, text=text)
+    return write_ply_vertices(path, arr, comments + extra, text=text)
 
 
 # --- reading ------------------------------------------------------------------------------------------------
@@ -683,16 +683,83 @@ def export(source, out, format: str = "ply", *, progress=None, **options) -> Pat
 @dataclass
 class PlyOptions:
     ascii: bool = field(default=False, metadata={"help": "write an ASCII PLY (larger, slower; to read by eye)"})
+    viewer: str = field(default="exact", metadata={
+        "help": "exact: the trained surfels (load_ply restores the model; for viewers set as splatzoo renders, e.g. "
+                "Spark blurAmount 0.1, GaussianSplats3D antialiased with kernel2DSize 0.1); 3dgs: scales and "
+                "opacities made for viewers that add 0.3 px^2 to every splat and keep its opacity (GaussianSplats3D's "
+                "and SuperSplat's defaults), from the run's training cameras; a file for viewing, not for load_ply"})
 
 
-def export_ply(source, out, *, progress=None, ascii: bool = False) -> Path:
-    """The `ply` format: the layout of the module docstring, which `load_ply` reads back exactly."""
+VIEWER_DILATION = 0.3  # px^2 a 3DGS-style viewer adds to every splat's screen covariance
+VIEWER_RULES = ("exact", "3dgs", "mip")
+
+
+def training_view_scale(means: torch.Tensor, axes: torch.Tensor, cameras) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each surfel was seen in training, as medians over `cameras`: px2 [N], its world area per pixel^2
+    ((depth / focal)^2), and fore [N,2], how much of each axis' length (axes [N,3,2], unit) survives on screen,
+    squared (1 - (axis . view direction)^2, at least 0.05)."""
+    px2, fore = [], []
+    for cam in cameras:
+        w2c = cam.world_to_camera.double()
+        z = means @ w2c[2, :3] + w2c[2, 3]
+        focal = math.sqrt(float(cam.K[0, 0]) * float(cam.K[1, 1]))
+        px2.append(torch.where(z > 0.05, (z / focal) ** 2, torch.nan))
+        d = torch.nn.functional.normalize(means - torch.linalg.inv(w2c)[:3, 3], dim=1)
+        fore.append(1 - torch.einsum("nk,nki->ni", d, axes) ** 2)
+    return torch.stack(px2).nanmedian(0).values, torch.stack(fore).median(0).values.clamp(0.05, 1.0)
+
+
+@torch.no_grad()
+def compensate_viewer_dilation(model, cameras, rule: str = "3dgs") -> None:
+    """Rewrite the scales and opacities of `model` (in place) so that a viewer that adds VIEWER_DILATION px^2 to each
+    splat draws it about as splatzoo does, at the scale the surfel was trained at (`training_view_scale`).
+
+    s_i, axis i's variance on screen (px^2), becomes s_i' = max(s_i - (0.3 - f), s_i / 4), f the model's own footprint
+    (0.1 px^2 when anti-aliased, else 0); the opacity keeps the splat's mass on screen (o sqrt(s0 s1)): rule "3dgs"
+    (the viewer keeps the opacity) o' = o sqrt(s0 s1 / ((s0' + 0.3)(s1' + 0.3))), rule "mip" (the viewer rescales it
+    by sqrt(s0' s1' / ((s0' + 0.3)(s1' + 0.3))), as Spark does) o' = o sqrt(s0 s1 / (s0' s1')); at most 0.99."""
+    from .geometry import quat_to_rotmat
+
+    if rule not in VIEWER_RULES[1:]:
+        raise SplatzooError(f"unknown viewer rule {rule!r}; known: {', '.join(VIEWER_RULES[1:])}")
+    per = model.per_primitive()
+    if "log_scales" not in per or "logit_opacity" not in per or "quats" not in per:
+        raise SplatzooError(f"model {model.name!r} has no log_scales, logit_opacity and quats to compensate")
+    means, quats = per["means"].double().cpu(), per["quats"].double().cpu()
+    axes = quat_to_rotmat(torch.nn.functional.normalize(quats, dim=1))[:, :, :2]
+    px2, fore = training_view_scale(means, axes, cameras)
+    px2 = torch.nan_to_num(px2, nan=float(px2.nanmedian()) if px2.isfinite().any() else 1.0)
+    footprint = model.raster_settings.pixel_filter if getattr(model, "antialias", False) else 0.0
+    log_scales = per["log_scales"].double().cpu()
+    s = torch.exp(2 * log_scales) / px2[:, None] * fore
+    shrunk = torch.maximum(s - (VIEWER_DILATION - footprint), s / 4)
+    kept = s.prod(1) / ((shrunk + VIEWER_DILATION).prod(1) if rule == "3dgs" else shrunk.prod(1))
+    opacity = (torch.sigmoid(per["logit_opacity"].double().cpu()) * kept.sqrt()).clamp(1e-6, 0.99)
+    new_scales = 0.5 * torch.log(shrunk * px2[:, None] / fore)
+    like = per["log_scales"]
+    model.replace_parameters({"log_scales": new_scales.to(like), "logit_opacity":
+                              torch.logit(opacity).to(per["logit_opacity"])})
+
+
+def export_ply(source, out, *, progress=None, ascii: bool = False, viewer: str = "exact") -> Path:
+    """The `ply` format: the layout of the module docstring, which `load_ply` reads back exactly (viewer="exact"), or
+    made for a viewer's dilation rule (`compensate_viewer_dilation`, from the run's training cameras)."""
     out = Path(out)
+    if viewer not in VIEWER_RULES:
+        raise SplatzooError(f"ply: viewer={viewer!r} is not known; use one of {', '.join(VIEWER_RULES)}")
     model, model_path = load_source(source)
     check_export_target(EXPORTERS.get("ply"), out, model_path)
-    path = save_ply(model, out, text=ascii)
+    if viewer != "exact":
+        from .runs import Run
+
+        if not Path(source).is_dir():
+            raise SplatzooError(f"ply:viewer={viewer} sizes each surfel at its training cameras: export from the run "
+                                f"folder, not the file {source}")
+        compensate_viewer_dilation(model, [v.camera for v in Run(source).scene().train], viewer)
+    path = save_ply(model, out, text=ascii, comments=[f"splatzoo viewer {viewer}"] if viewer != "exact" else ())
     if progress:
-        progress(f"{model.num_primitives} {model.name} primitives")
+        progress(f"{model.num_primitives} {model.name} primitives" + (f", made for {viewer} viewers" if
+                                                                       viewer != "exact" else ""))
     return path
 
 

@@ -466,3 +466,45 @@ def test_eval_render_view_and_train_read_a_ply(tmp_path, tiny_data):
     assert isinstance(res.exception, SplatzooError) and "holds a '2dgs' model but this run trains 'gabor'" in \
         str(res.exception)
     assert not (tmp_path / "run2" / "config.json").exists()
+
+
+def test_ply_for_3dgs_viewers_keeps_each_splats_mass(tmp_path):
+    """ply:viewer=3dgs shrinks each surfel's screen variance by the viewer's 0.3 px^2 (less the model's own footprint)
+    and lowers its opacity so that o sqrt(s0 s1) on screen stays; mip raises it instead. A model file has no cameras:
+    a clear error."""
+    import torch
+
+    from splatzoo import Camera, create_model
+    from splatzoo.export import VIEWER_DILATION, compensate_viewer_dilation, export, load_ply, save_ply
+
+    torch.manual_seed(0)
+    cam = Camera.look_at([0, 0, -3], [0, 0, 0], width=64, height=64)
+    model = create_model("2dgs", torch.randn(50, 3) * 0.3, torch.rand(50, 3))
+    model.antialias = False
+    before = {k: v.detach().clone() for k, v in model.per_primitive().items()}
+    compensate_viewer_dilation(model, [cam], "3dgs")
+    after = model.per_primitive()
+    assert torch.all(after["log_scales"] < before["log_scales"])
+    assert torch.all(after["logit_opacity"] <= before["logit_opacity"] + 1e-6)
+    # the mass on screen: o sqrt(s0 s1) before equals o' sqrt((s0' + d)(s1' + d)) after, d the viewer's dilation
+    z = (model.per_primitive()["means"].detach().double()[:, 2] + 3)
+    px2 = (z / float(cam.K[0, 0])) ** 2
+    from splatzoo.geometry import quat_to_rotmat
+
+    axes = quat_to_rotmat(torch.nn.functional.normalize(before["quats"].double(), dim=1))[:, :, :2]
+    d = torch.nn.functional.normalize(before["means"].double() - torch.tensor([0, 0, -3.0]).double(), dim=1)
+    fore = (1 - torch.einsum("nk,nki->ni", d, axes) ** 2).clamp(0.05, 1)
+    s0 = torch.exp(2 * before["log_scales"].double()) / px2[:, None] * fore
+    s1 = torch.exp(2 * after["log_scales"].detach().double()) / px2[:, None] * fore
+    mass0 = torch.sigmoid(before["logit_opacity"].double()) * s0.prod(1).sqrt()
+    mass1 = torch.sigmoid(after["logit_opacity"].detach().double()) * (s1 + VIEWER_DILATION).prod(1).sqrt()
+    unclamped = torch.sigmoid(after["logit_opacity"].detach().double()) > 2e-6
+    assert torch.allclose(mass0[unclamped], mass1[unclamped], rtol=1e-4)
+    with pytest.raises(SplatzooError, match="unknown viewer rule"):
+        compensate_viewer_dilation(model, [cam], "sibr")
+    save_ply(model, tmp_path / "m.ply")
+    with pytest.raises(SplatzooError, match="training cameras: export from the run"):
+        export(tmp_path / "m.ply", tmp_path / "v.ply", "ply:viewer=3dgs")
+    with pytest.raises(SplatzooError, match="viewer='sibr' is not known"):
+        export(tmp_path / "m.ply", tmp_path / "v.ply", "ply:viewer=sibr")
+    assert load_ply(tmp_path / "m.ply").num_primitives == 50
