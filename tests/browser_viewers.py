@@ -72,8 +72,13 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
 
     def translate_path(self, path):
         parts = urllib.parse.urlparse(path).path.split("/")
-        if len(parts) >= 4 and parts[1] == "files" and parts[2] in self.files:
-            return str(self.files[parts[2]])
+        if len(parts) == 4 and parts[1] == "files" and parts[2] in self.files:
+            registered, name = self.files[parts[2]], urllib.parse.unquote(parts[3])
+            if name == registered.name:
+                return str(registered)
+            if name not in ("", ".", "..") and "/" not in name and "\\" not in name:
+                return str(registered.parent / name)  # a file beside it (an OBJ's .mtl, a texture)
+            return str(BROWSER_DIR / "no-such-file")  # a 404
         return super().translate_path(path)
 
     def end_headers(self):
@@ -177,6 +182,32 @@ class BrowserViewers:
             raise SplatzooError(f"{viewer} returned a {img.shape[1]}x{img.shape[0]} image for a "
                                f"{camera.width}x{camera.height} camera")
         return img
+
+
+    def load_mesh(self, mesh_path) -> dict:
+        """What three.js's own loaders read of a mesh file (.glb through GLTFLoader; .obj through OBJLoader with its
+        .mtl beside it through MTLLoader): {meshes, vertices, triangles, uvs, textured, textureSize, meanTexel}."""
+        mesh_path = Path(mesh_path)
+        if not mesh_path.is_file():
+            raise SplatzooError(f"no mesh file at {mesh_path}")
+        url = self._server.add_file(mesh_path)
+        mtl = mesh_path.with_suffix(".mtl")
+        page = self._browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        try:
+            page.set_default_timeout(self.timeout_ms)
+            page.goto(f"{self._server.url}/index.html")
+            page.wait_for_function("window.meshReady === true")
+            args = {"url": url, "mtl": url.rsplit("/", 1)[0] + "/" + urllib.parse.quote(mtl.name)
+                    if mesh_path.suffix.lower() == ".obj" and mtl.is_file() else None}
+            try:
+                return page.evaluate("args => window.loadMesh(args)", args)
+            except Exception as e:
+                raise SplatzooError(f"three.js could not load {mesh_path}: {e}"
+                                   + (f" (page errors: {'; '.join(errors)})" if errors else "")) from None
+        finally:
+            page.close()
 
 
 def render_in_viewer(ply_path, camera, viewer: str = "spark", background=(1.0, 1.0, 1.0),

@@ -166,3 +166,36 @@ def test_errors_name_the_viewer_and_the_file(browser, tmp_path):
                        + bytes(4))
     with pytest.raises(bv.SplatzooError, match=r"spark failed to render .*broken\.ply: .*Missing y"):
         browser.render(broken, cam, viewer="spark")
+
+
+def test_threejs_reads_the_mesh_files(browser, tmp_path):
+    """The textured GLB and OBJ (+ MTL + PNG) that `splatzoo export --format mesh-glb/mesh-obj` and `extract-mesh`
+    write load in three.js's own GLTFLoader and OBJLoader + MTLLoader: every triangle, the UVs, and the texture."""
+    import open3d as o3d
+
+    from splatzoo.mesh import write_mesh
+    from splatzoo.errors import SplatzooError
+    from splatzoo.mesh_texture import TexturedMesh, uv_atlas, write_textured_mesh
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=8)
+    sphere.compute_vertex_normals()
+    positions = np.asarray(sphere.vertices, dtype=np.float32)
+    faces = np.asarray(sphere.triangles, dtype=np.int64)
+    vmapping, atlas_faces, uvs = uv_atlas(positions, faces, 64, 2)
+    texture = np.zeros((64, 64, 3), np.uint8)
+    texture[..., 0], texture[::8, :, 1] = 200, 255  # red with green lines: a mean colour to find again
+    mesh = TexturedMesh(positions[vmapping], atlas_faces, uvs=uvs, texture=texture)
+    glb = write_textured_mesh(mesh, tmp_path / "textured.glb")
+    obj = write_textured_mesh(mesh, tmp_path / "textured.obj")
+    sphere.vertex_colors = o3d.utility.Vector3dVector(np.full((len(sphere.vertices), 3), 0.5))
+    plain = write_mesh(sphere, tmp_path / "plain.glb")
+    want = texture.reshape(-1, 3).mean(0) / 255
+    for path in (glb, obj):
+        got = browser.load_mesh(path)
+        assert got["triangles"] == len(atlas_faces) and got["uvs"], (path.name, got)
+        assert got["textured"] and got["textureSize"] == [64, 64], (path.name, got)
+        assert np.allclose(got["meanTexel"], want, atol=2 / 255), (path.name, got["meanTexel"], want)
+    got = browser.load_mesh(plain)
+    assert got["triangles"] == len(faces) and not got["textured"]
+    with pytest.raises(SplatzooError, match="no mesh file"):
+        browser.load_mesh(tmp_path / "missing.glb")
