@@ -32,6 +32,7 @@ from types import SimpleNamespace
 import torch
 
 from .errors import SplatzooError
+from .io import say_progress as _say
 from .geometry import eval_sh, quat_to_rotmat, rotmat_to_quat
 from .types import Camera, Surfels
 
@@ -413,16 +414,6 @@ def plain_model(means, quats, scales, opacities, colors, sh_rest=None, *, like=N
 
 
 # --- the fit -----------------------------------------------------------------------------------------------------
-
-def _say(progress):
-    if callable(progress):
-        return progress
-    if progress:
-        import sys
-
-        return lambda msg: print(msg, file=sys.stderr, flush=True)
-    return lambda msg: None
-
 
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a.clamp(0, 1) - b.clamp(0, 1)) ** 2).mean())

@@ -8,9 +8,11 @@ import json
 import math
 import os
 import re
+import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable
 
 from .errors import SplatzooError
 
@@ -41,6 +43,16 @@ def atomic_path(path, suffix: str = ""):
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+def say_progress(progress) -> Callable[[str], None]:
+    """Where a long job's progress lines go: `progress` itself when callable, stderr when it is otherwise true
+    (progress=True), nowhere when false."""
+    if callable(progress):
+        return progress
+    if progress:
+        return lambda msg: print(msg, file=sys.stderr, flush=True)
+    return lambda msg: None
 
 
 def write_json(path, data) -> None:

@@ -25,13 +25,13 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Iterable
 
 import numpy as np
 import torch
 
 from .errors import SplatzooError
-from .io import atomic_path
+from .io import atomic_path, say_progress as _say
 from .types import Camera
 
 DEPTH_KINDS = ("median", "expected")
@@ -68,10 +68,6 @@ class MeshStats:
     vertices: int = 0
     triangles: int = 0
     seconds: float = 0.0
-
-
-def _say(progress) -> Callable[[str], None]:
-    return progress if callable(progress) else (lambda msg: None)
 
 
 def look_at_point(cameras: list[Camera]) -> torch.Tensor:

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
-from .io import atomic_path
+from .io import atomic_path, say_progress as _say
 from .types import Camera
 
 VIEW_SETS = ("train", "all")
@@ -228,10 +228,6 @@ class TexturedMesh:
                                          or self.texture.dtype != np.uint8):
             raise SplatzooError("the texture must be an [H,W,3] uint8 image")
         return self
-
-
-def _say(progress):
-    return progress if callable(progress) else (lambda msg: None)
 
 
 # --- atlas and texel positions ------------------------------------------------------------------------------

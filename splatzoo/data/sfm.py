@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from ..io import write_json
+from ..io import say_progress as _say, write_json
 from .camera_models import all_models, model_name, undistortable_models
 from .colmap import import_pycolmap, quiet_colmap
 from .scene import image_size, list_images
@@ -125,14 +125,6 @@ def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarra
     s = float(np.trace(np.diag(S) @ D) / var_s) if var_s > 0 else 1.0
     t = mu_d - s * R @ mu_s
     return s, R, t
-
-
-def _say(progress):
-    if callable(progress):
-        return progress
-    if progress:
-        return lambda msg: print(msg, file=sys.stderr, flush=True)
-    return lambda msg: None
 
 
 def _check_images(images_dir: Path) -> list[Path]:
