@@ -1080,19 +1080,28 @@ def render_run(run_dir, *, split: str = "test", video: bool = False, backend: st
                frames: int = 60, out=None, skip_missing: bool = False) -> list[Path]:
     """Write the split's renders as PNG (and an orbit video, WebM) into RUN/renders (or the folder `out`: the run
     is then only read); returns the written paths."""
-    from .evaluate import orbit_cameras, resolve_backend, save_test_renders, write_video
-
-    if split not in ("test", "train"):
-        raise SplatzooError(f"unknown split {split!r}; use test or train")
+    _check_split(split)
     run = Run(run_dir)
     folder = Path(out) if out is not None else run.renders_dir
     with run.writing("splatzoo render", folder, "--out FOLDER"):
         model, scene, _ = run.load(backend, skip_missing=skip_missing)
-        paths = save_test_renders(model, scene, folder, backend=backend, split=split)
-        if video:
-            cams = orbit_cameras([v.camera for v in scene.train], frames)
-            paths.append(write_video(model, cams, scene.background, folder / "orbit.webm",
-                                     backend=resolve_backend(backend, next(model.parameters()).device)))
+        return _render_views(model, scene, folder, split=split, video=video, backend=backend, frames=frames)
+
+
+def _check_split(split: str) -> None:
+    if split not in ("test", "train"):
+        raise SplatzooError(f"unknown split {split!r}; use test or train")
+
+
+def _render_views(model, scene, folder: Path, *, split: str, video: bool, backend: str, frames: int) -> list[Path]:
+    """The split's renders as PNG in `folder` and, with `video`, an orbit of the training cameras as WebM."""
+    from .evaluate import orbit_cameras, resolve_backend, save_test_renders, write_video
+
+    paths = save_test_renders(model, scene, folder, backend=backend, split=split)
+    if video:
+        cams = orbit_cameras([v.camera for v in scene.train], frames)
+        paths.append(write_video(model, cams, scene.background, folder / "orbit.webm",
+                                 backend=resolve_backend(backend, next(model.parameters()).device)))
     return paths
 
 
@@ -1134,16 +1143,8 @@ def render_file(path, data, *, split: str = "test", video: bool = False, backend
                 out=None, scene_options: dict | None = None) -> list[Path]:
     """Render the model file `path` (.ply or .pt) from the split's views of the dataset `data` into the folder `out`
     (default: <file name>_renders beside the file); returns the written paths."""
-    from .evaluate import orbit_cameras, resolve_backend, save_test_renders, write_video
-
-    if split not in ("test", "train"):
-        raise SplatzooError(f"unknown split {split!r}; use test or train")
+    _check_split(split)
     path = Path(path)
     model, scene = _file_and_scene(path, data, backend, scene_options)
     folder = Path(out) if out is not None else path.parent / f"{path.stem}_renders"
-    paths = save_test_renders(model, scene, folder, backend=backend, split=split)
-    if video:
-        cams = orbit_cameras([v.camera for v in scene.train], frames)
-        paths.append(write_video(model, cams, scene.background, folder / "orbit.webm",
-                                 backend=resolve_backend(backend, next(model.parameters()).device)))
-    return paths
+    return _render_views(model, scene, folder, split=split, video=video, backend=backend, frames=frames)
