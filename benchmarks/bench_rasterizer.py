@@ -7,7 +7,7 @@
 Scenes: "sphere" (surfels on a sphere and a back wall, 1-4 px sigma, opacity 0.2-1) and "dense" (surfels spread
 uniformly over the image at depth 2-4, 1.5-5 px sigma, opacity 0.1-0.95, tilted up to 50 degrees: many
 overlapping semi-transparent layers per pixel). K=4a is the adaptive case: K=4 with per-surfel wave counts drawn
-uniformly from 0..4. "pairs" counts the (surfel, pixel) pairs a tile loop evaluates: for every (surfel, tile) pair,
+uniformly from 0..4. K=0t8 is the texture kind: K=0 waves and an 8x8 RGBA texture per surfel (--waves 0,0t4,0t8). "pairs" counts the (surfel, pixel) pairs a tile loop evaluates: for every (surfel, tile) pair,
 the pixel rows of the tile inside the surfel's exact screen box, 16 pixels each; rates are per core for the CPU
 (divided by torch.get_num_threads()) and per GPU for CUDA. Times are end to end (`rasterize`, every field requiring
 grad; the backward of a loss on rgb, depth, normal and distortion), median of --repeats after one warm-up.
@@ -44,14 +44,20 @@ WAVES = ("0", "4", "4a")
 
 
 def make_scene(kind: str, n: int, width: int, height: int, waves: str, seed: int = 0, dtype=torch.float32):
-    """A benchmark scene; waves "K" or "Ka" (K waves with per-surfel counts drawn from 0..K)."""
+    """A benchmark scene; waves "K", "Ka" (K waves with per-surfel counts drawn from 0..K) or "KtT" (K waves and a
+    T x T texture per surfel: rgb in [-0.3, 0.3], alpha in [0.5, 1])."""
     from splatzoo.testing import dense_overlap, sphere_and_wall
 
+    waves, _, tex = waves.partition("t")
     K = int(waves.rstrip("a"))
     make = dense_overlap if kind == "dense" else sphere_and_wall
     s, cam = make(n, width, height, K, seed=seed, dtype=dtype)
     if waves.endswith("a"):
         s.wave_counts = torch.randint(0, K + 1, (n,), generator=torch.Generator().manual_seed(seed), dtype=torch.int32)
+    if tex:
+        T = int(tex)
+        t = torch.rand(n, T, T, 4, generator=torch.Generator().manual_seed(seed + 1)).to(dtype)
+        s.texture = torch.cat([(t[..., :3] - 0.5) * 0.6, 0.5 + 0.5 * t[..., 3:]], -1)
     return s, cam
 
 
@@ -106,7 +112,7 @@ def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3,
     echo("-" * len(header))
     for name, kind, W, H, n, allowed in configs:
         for K in waves:
-            scene, cam = make_scene(kind, n, W, H, K, seed=n + int(K.rstrip("a")))
+            scene, cam = make_scene(kind, n, W, H, K, seed=n + int(K.partition("t")[0].rstrip("a")))
             pairs = count_pairs(scene, cam)
             for backend in backends:
                 if backend not in allowed:
@@ -182,7 +188,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default="benchmarks/results/rasterizer.json", help="where to write the results")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--backends", default=None, help="comma-separated subset of cuda,cpu,reference")
-    ap.add_argument("--waves", default=",".join(WAVES), help="comma-separated wave counts: 0, 4, 4a (adaptive)")
+    ap.add_argument("--waves", default=",".join(WAVES),
+                    help="comma-separated wave counts: 0, 4, 4a (adaptive); 0t8: K=0 and 8x8 textures")
     group = ap.add_mutually_exclusive_group()
     group.add_argument("--quick", action="store_true", help="only the 128x128 scenes")
     group.add_argument("--gpu", action="store_true", help="the 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)")

@@ -82,11 +82,14 @@ sz::SurfelArgs<S> surfel_args(const sz::Settings& st, const TensorMap& c, int64_
     const Tensor& wv = need(c, "wave_vectors");
     const Tensor& order = need(c, "order");
     auto wc = c.find("wave_counts");
+    auto tf = c.find("texture_filtered");
     sz::SurfelArgs<S> a{};
     a.st = st;
     a.N = int(wv.size(0));
     a.M = int(order.size(0));
     a.K = int(wv.size(1));
+    a.TS = int(need(c, "texture").size(1));
+    a.texture_filtered = tf != c.end() ? tf->second.data_ptr<S>() : nullptr;
     a.W = int(W);
     a.H = int(H);
     a.order = order.data_ptr<int>();
@@ -127,8 +130,9 @@ sz::FrameArgs<S> frame_args(const TensorMap& st, const TensorMap* out, bool imag
 }
 
 // The per-surfel fields in table order (surfel_fields.h), checked against the table: one dtype and device, shape
-// [N, trailing dims] with K the wave count of the first field that has one. Returns them by name, contiguous.
-TensorMap check_surfels(const std::vector<Tensor>& fields, int64_t& N, int64_t& K) {
+// [N, trailing dims] with K the wave count of the first field that has one and TS the texture size of the first
+// that has one. Returns them by name, contiguous.
+TensorMap check_surfels(const std::vector<Tensor>& fields, int64_t& N, int64_t& K, int64_t& TS) {
     TORCH_CHECK(int(fields.size()) == sz::NUM_SURFEL_FIELDS, "splatzoo render: ", sz::NUM_SURFEL_FIELDS,
                 " surfel fields expected (the Surfels field table), got ", fields.size(),
                 " (a build from another splatzoo version?)");
@@ -138,6 +142,7 @@ TensorMap check_surfels(const std::vector<Tensor>& fields, int64_t& N, int64_t& 
     N = first.dim() >= 1 ? first.size(0) : -1;
     TORCH_CHECK(N >= 0 && N < INT_MAX, "splatzoo render: bad number of surfels ", first.sizes());
     K = -1;
+    TS = -1;
     TensorMap out;
     for (int i = 0; i < sz::NUM_SURFEL_FIELDS; ++i) {
         const sz::SurfelFieldInfo& info = sz::SURFEL_FIELD_INFO[i];
@@ -145,7 +150,8 @@ TensorMap check_surfels(const std::vector<Tensor>& fields, int64_t& N, int64_t& 
         std::vector<int64_t> shape = {N};
         for (int d = 0; d < info.rank; ++d) {
             if (info.dims[d] == sz::SZ_K && K < 0 && t.dim() == info.rank + 1) K = t.size(d + 1);
-            shape.push_back(info.dims[d] == sz::SZ_K ? K : info.dims[d]);
+            if (info.dims[d] == sz::SZ_T && TS < 0 && t.dim() == info.rank + 1) TS = t.size(d + 1);
+            shape.push_back(info.dims[d] == sz::SZ_K ? K : info.dims[d] == sz::SZ_T ? TS : info.dims[d]);
         }
         TORCH_CHECK(t.sizes().vec() == shape, "splatzoo render: ", info.name, " must have shape ",
                     at::IntArrayRef(shape), ", got ", t.sizes());
@@ -155,6 +161,8 @@ TensorMap check_surfels(const std::vector<Tensor>& fields, int64_t& N, int64_t& 
         out[info.name] = t.contiguous();
     }
     if (K < 0) K = 0;
+    if (TS < 0) TS = 0;
+    TORCH_CHECK(TS <= 64, "splatzoo render: textures of at most 64x64 texels, got ", TS, "x", TS);
     return out;
 }
 
@@ -167,8 +175,8 @@ TensorMap check_surfels(const std::vector<Tensor>& fields, int64_t& N, int64_t& 
 std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector<Tensor>& fields,
                                        const std::optional<Tensor>& wave_counts, const Tensor& KR, const Tensor& Kt,
                                        const Tensor& eye, int64_t W, int64_t H, bool emulated, bool image_only) {
-    int64_t N = 0, K = 0;
-    const TensorMap surfels = check_surfels(fields, N, K);
+    int64_t N = 0, K = 0, TS = 0;
+    const TensorMap surfels = check_surfels(fields, N, K, TS);
     const Tensor& means = surfels.at("means");
     TORCH_CHECK(W >= 1 && H >= 1 && W <= (1 << 20) && H <= (1 << 20) && W * H <= int64_t(INT_MAX),
                 "splatzoo render: bad image size ", W, "x", H, " (at most 2^20 a side and 2^31 - 1 pixels)");
@@ -222,6 +230,7 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector
     state["geom"] = at::empty({N, sz::GEOM}, f);
     state["bounds"] = at::empty({N, 4}, i32);
     state["tile_start"] = at::empty({nt + 1}, i32);
+    if (TS > 0 && st.pixel_filter > 0) state["texture_filtered"] = at::empty({N, TS, TS, sz::TEX_CHANNELS}, f);
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_bin", [&] {
         const auto s = surfel_args<scalar_t>(st, state, W, H);
         scalar_t* geom = state["geom"].data_ptr<scalar_t>();
@@ -310,7 +319,7 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
     for (const sz::SurfelFieldInfo& info : sz::SURFEL_FIELD_INFO)
         if (info.role != sz::Role::geometry) v_c[info.name] = at::zeros_like(need(state, info.name));
     const int64_t K = need(state, "wave_vectors").size(1);
-    const int GW = sz::grad_width(int(K));
+    const int GW = sz::grad_width(int(K), int(need(state, "texture").size(1)));
     if (M > 0) {
         AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_backward", [&] {
             using S = scalar_t;

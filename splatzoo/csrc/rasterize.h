@@ -8,7 +8,7 @@
 // tile-major in depth order, run the tile loop; the backward runs the tile loop back to front, sums each surfel's
 // slot row and maps it to input gradients (finalize_grads), then back through the projection. Per-surfel arrays
 // stay in input order (no gathers): the order and the tile lists hold surfel indices.
-// Shapes: N surfels in, M visible, K waves, image H x W, P (tile, surfel) pairs.
+// Shapes: N surfels in, M visible, K waves, TS texels a side (0: no texture), image H x W, P (tile, surfel) pairs.
 #pragma once
 
 #include <cstdint>
@@ -45,7 +45,7 @@ struct ProjectGradArgs {
 template <class S>
 struct SurfelArgs {
     Settings st;
-    int N, M, K, W, H;
+    int N, M, K, TS, W, H;
     const int* order;  // [M] visible surfel indices, front to back
     const S* T;        // [N,3,3] rows m1, m2, m3
     const S* center;   // [N,2] projected centre (pixels)
@@ -53,10 +53,13 @@ struct SurfelArgs {
     const S* normal;   // [N,3] world normal facing the camera
     const S* boxes;    // [N,4] exact screen box (xmin, ymin, xmax, ymax)
     // the fields read per pair, by their table names (surfel_fields.h): opacities [N], base_color [N,3],
-    // wave_vectors [N,K,2], wave_phases [N,K], wave_amplitudes [N,K,3]
+    // wave_vectors [N,K,2], wave_phases [N,K], wave_amplitudes [N,K,3], falloff [N], texture [N,TS,TS,4]
 #define SZ_FIELD_POINTER(name) const S* name;
     SZ_PAIR_FIELDS(SZ_FIELD_POINTER)
 #undef SZ_FIELD_POINTER
+    // anti-aliased with a texture: [N,TS,TS,4] the prefiltered textures (prefilter_texture), written by the prepare
+    // step for the visible surfels; else nullptr
+    S* texture_filtered;
     // [N] waves in use per surfel (its first wcount[i] of K), or nullptr for all K. The tile loops run the wave
     // loops to k < wcount[i], so removed waves cost nothing; the row stride stays K.
     const int* wcount;
@@ -95,16 +98,29 @@ inline int tiles_x(int W) { return (W + TILE - 1) / TILE; }
 inline int tiles_y(int H) { return (H + TILE - 1) / TILE; }
 
 // ---- shared by the CPU loops and the CUDA kernels ----
-// One surfel's colour inputs (its rows of the SurfelArgs arrays) and how many of its K waves it uses.
+// One surfel's appearance as its pairs see it (its rows of the SurfelArgs arrays, the waves it uses, its texture:
+// prefiltered when anti-aliased) and its normal. raw: the texture as given instead (finalize_surfel).
 template <class S>
 struct SurfelColour {
-    const S *normal, *base, *wv, *wp, *wa;
-    int K;
+    const S* normal;
+    Appearance<S> ap;
 };
 template <class S>
-SZ_HD SurfelColour<S> surfel_colour(const SurfelArgs<S>& s, int64_t i) {
-    return {s.normal + 3 * i, s.base_color + 3 * i, s.wave_vectors + 2 * s.K * i, s.wave_phases + s.K * i,
-            s.wave_amplitudes + 3 * s.K * i, s.wcount ? s.wcount[i] : s.K};
+SZ_HD SurfelColour<S> surfel_colour(const SurfelArgs<S>& s, int64_t i, bool raw = false) {
+    const int64_t texels = int64_t(TEX_CHANNELS) * s.TS * s.TS * i;
+    const S* tex = s.TS == 0 ? nullptr : (s.texture_filtered && !raw ? s.texture_filtered : s.texture) + texels;
+    return {s.normal + 3 * i,
+            {s.base_color + 3 * i, s.wave_vectors + 2 * s.K * i, s.wave_phases + s.K * i,
+             s.wave_amplitudes + 3 * s.K * i, s.wcount ? s.wcount[i] : s.K, s.K, tex, s.TS}};
+}
+
+// The per-surfel appearance set-up of a prepare step (visible surfel i, its Geom done): anti-aliased, its prefiltered
+// texture.
+template <class S>
+SZ_HD void prepare_appearance(const SurfelArgs<S>& s, const Geom<S>& g, int64_t i) {
+    if (s.TS == 0 || s.texture_filtered == nullptr) return;
+    const int64_t texels = int64_t(TEX_CHANNELS) * s.TS * s.TS * i;
+    prefilter_texture(g.blur, s.texture + texels, s.TS, s.texture_filtered + texels);
 }
 
 // A pixel's finished forward state -> the outputs and the state the backward reads, at pixel index o.
@@ -143,10 +159,12 @@ SZ_HD void load_pixel_bwd(PixelBwd<S>& p, const FrameArgs<S>& f, const GradArgs<
 template <class S, class R>
 SZ_HD void finalize_surfel(const SurfelArgs<S>& s, const GradArgs<S>& g, int64_t i, const R* row) {
     const int K = s.K;
-    finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, s.wave_vectors + 2 * K * i, s.wave_amplitudes + 3 * K * i,
-                   row, K, g.v_T + 9 * i, g.v_center + 2 * i, g.v_depth_c + i, g.v_normal_c + 3 * i,
-                   g.v_opacities + i, g.v_falloff + i, g.v_base_color + 3 * i, g.v_wave_vectors + 2 * K * i,
-                   g.v_wave_phases + K * i, g.v_wave_amplitudes + 3 * K * i);
+    Appearance<S> ap = surfel_colour(s, i, true).ap;
+    ap.K = K;  // every wave's gradients (those beyond a surfel's count are 0)
+    finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, ap, row, g.v_T + 9 * i, g.v_center + 2 * i,
+                   g.v_depth_c + i, g.v_normal_c + 3 * i, g.v_opacities + i, g.v_falloff + i, g.v_base_color + 3 * i,
+                   g.v_wave_vectors + 2 * K * i, g.v_wave_phases + K * i, g.v_wave_amplitudes + 3 * K * i,
+                   g.v_texture + int64_t(TEX_CHANNELS) * s.TS * s.TS * i);
 }
 
 // ---- CPU (OpenMP) ----
@@ -160,7 +178,7 @@ template <class S> int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bou
 void cpu_bin(int M, int W, int H, const int* order, const int* bounds, const int64_t* surfel_off, int* tile_start,
              int* tile_list, int* pair_pos);
 template <class S> void cpu_forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads);
-// partials: scratch [P, grad_width(K)]; rows are summed per surfel in a fixed order (deterministic).
+// partials: scratch [P, grad_width(K, TS)]; rows are summed per surfel in a fixed order (deterministic).
 template <class S>
 void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, const int64_t* surfel_off,
                   const int* pair_pos, S* partials, int threads);
@@ -179,7 +197,7 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
     void tile_starts(int64_t P, int tiles, const int* order, const int64_t* keys, int* tile_list, int* tile_start, \
                      void* stream);                                                                                \
     template <class S> void forward(const SurfelArgs<S>& s, const FrameArgs<S>& f, void* stream);                  \
-    /* rows: zeroed scratch [N, grad_width(K)], summed into per warp (one atomic per slot per warp) */             \
+    /* rows: zeroed scratch [N, grad_width(K, TS)], summed into per warp (one atomic per slot per warp) */             \
     template <class S>                                                                                             \
     void backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, S* rows, void* stream);
 

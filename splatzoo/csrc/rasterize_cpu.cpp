@@ -40,10 +40,12 @@ struct TileScratch {
 };
 
 // Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z per pixel (KEEP: and the footprint values
-// the anti-aliased backward needs). BETA: the surfel's falloff is the Beta kernel (falloff in surfel_math.h).
-template <bool FILTERED, bool KEEP, bool BETA, class S>
-__attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Geom<S>& g, const S* xs, S y0, int r0,
-                                              int r1, TileScratch<S>& sc) {
+// the anti-aliased backward needs). BETA: the surfel's falloff is the Beta kernel (falloff in surfel_math.h). GAIN:
+// its appearance has an opacity gain (a texture: ap), applied in a second loop over the rows (the texture's reads
+// would keep the first from vectorising).
+template <bool FILTERED, bool KEEP, bool BETA, bool GAIN, class S>
+__attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Geom<S>& g, const Appearance<S>& ap,
+                                              const S* xs, S y0, int r0, int r1, TileScratch<S>& sc) {
     const Geom<S> gl = g;  // local copies let the compiler keep every field in a register
     const Settings st = settings;
     for (int r = r0; r <= r1; ++r) {
@@ -60,8 +62,8 @@ __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Ge
             sc.u[o + c] = e.u;
             sc.v[o + c] = e.v;
             sc.z[o + c] = e.z;
+            if constexpr (KEEP || GAIN) sc.ex[o + c] = e.ex;
             if constexpr (KEEP) {
-                sc.ex[o + c] = e.ex;
                 sc.q[o + c] = e.rho;
                 sc.inv[o + c] = e.inv;
                 sc.xu[o + c] = e.xu;
@@ -77,28 +79,49 @@ __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Ge
             }
         }
     }
+    if constexpr (GAIN) {  // apply_opacity_gain, on the values kept
+        const Appearance<S> al = ap;
+        for (int r = r0; r <= r1; ++r) {
+            const int o = r * TILE;
+#pragma omp simd
+            for (int c = 0; c < TILE; ++c) {
+                const int p = o + c;
+                const S ex = rmul(sc.ex[p], appearance_gain(al, sc.u[p], sc.v[p]));
+                sc.ex[p] = ex;
+                sc.alpha[p] = pair_alpha(st, rmul(gl.o, ex), sc.z[p]);
+            }
+        }
+    }
 }
 
 // keep: the backward's call (anti-aliased, it keeps the footprint values).
-template <class S>
-void eval_rows(const Settings& st, const Geom<S>& g, const S* xs, S y0, int r0, int r1, TileScratch<S>& sc,
-               bool keep) {
+template <bool GAIN, class S>
+void eval_rows_kernel(const Settings& st, const Geom<S>& g, const Appearance<S>& ap, const S* xs, S y0, int r0,
+                      int r1, TileScratch<S>& sc, bool keep) {
     const bool beta = g.s > S(0);
     if (st.pixel_filter > 0 && keep)
-        beta ? eval_rows_impl<true, true, true>(st, g, xs, y0, r0, r1, sc)
-             : eval_rows_impl<true, true, false>(st, g, xs, y0, r0, r1, sc);
+        beta ? eval_rows_impl<true, true, true, GAIN>(st, g, ap, xs, y0, r0, r1, sc)
+             : eval_rows_impl<true, true, false, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
     else if (st.pixel_filter > 0)
-        beta ? eval_rows_impl<true, false, true>(st, g, xs, y0, r0, r1, sc)
-             : eval_rows_impl<true, false, false>(st, g, xs, y0, r0, r1, sc);
+        beta ? eval_rows_impl<true, false, true, GAIN>(st, g, ap, xs, y0, r0, r1, sc)
+             : eval_rows_impl<true, false, false, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
     else
-        beta ? eval_rows_impl<false, false, true>(st, g, xs, y0, r0, r1, sc)
-             : eval_rows_impl<false, false, false>(st, g, xs, y0, r0, r1, sc);
+        beta ? eval_rows_impl<false, false, true, GAIN>(st, g, ap, xs, y0, r0, r1, sc)
+             : eval_rows_impl<false, false, false, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
+}
+template <class S>
+void eval_rows(const Settings& st, const Geom<S>& g, const Appearance<S>& ap, const S* xs, S y0, int r0, int r1,
+               TileScratch<S>& sc, bool keep) {
+    if (ap.TS > 0)
+        eval_rows_kernel<true>(st, g, ap, xs, y0, r0, r1, sc, keep);
+    else
+        eval_rows_kernel<false>(st, g, ap, xs, y0, r0, r1, sc, keep);
 }
 
-// The slots geom_backward_filtered writes (a prefix of the row; G_BASE..G_NORMAL are colour slots it leaves alone,
-// G_ZC and G_CENTER it sets to 0: the screen filter's, unused when anti-aliased).
-constexpr int GEOM_SLOTS = G_WAVES;
-constexpr bool filtered_geom_slot(int i) { return i < G_ZC || i == G_O || (i >= G_A && i < G_WAVES); }
+// The slots geom_backward_filtered writes (a prefix of the row, before the appearance block; G_NORMAL is a slot it
+// leaves alone, G_ZC and G_CENTER it sets to 0: the screen filter's, unused when anti-aliased).
+constexpr int GEOM_SLOTS = G_APPEARANCE;
+constexpr bool filtered_geom_slot(int i) { return i < G_ZC || i == G_O || (i >= G_A && i < G_APPEARANCE); }
 
 // Per-lane slot sums of a vectorised loop over one row's columns: lanes[slot][c] (one vector add per slot).
 template <class S>
@@ -184,12 +207,14 @@ inline bool clip_box(const int* b, const TileRect& tr, int& c0, int& c1, int& r0
     return c0 <= c1 && r0 <= r1;
 }
 
-constexpr int LOCAL_GW = G_WAVES + G_PER_WAVE * SINCOS_CACHE;  // gradient rows up to this width live on the stack
+// gradient rows up to this width live on the stack (every wave count up to the sin/cos cache, textures up to 8x8)
+constexpr int LOCAL_GW = grad_width(SINCOS_CACHE, 8);
 
 template <class S>
 struct RowAcc {
     S* g;
     void operator()(int i, S v) { g[i] += v; }
+    void scatter(int i, S v) { g[i] += v; }
 };
 
 // Runs pass(acc) with acc summing into a zeroed slot row of width GW that ends up in row. Rows up to LOCAL_GW wide
@@ -215,9 +240,9 @@ template <class S>
 struct PairPass {
     const Settings& st;
     const Geom<S>& g;
-    const SurfelColour<S>& sf;
-    const S* wa;     // the amplitudes the pixels see (anti-aliased: times the gains, fold_gains)
-    const S* gains;  // anti-aliased: the wave gains
+    const S* normal;
+    const Appearance<S>& ap;  // as the pixels see it (anti-aliased: the amplitudes times the gains, fold_gains)
+    const S* gains;           // anti-aliased: the wave gains
     int r0, r1, c0, c1, rel;
     S y0;
 };
@@ -239,15 +264,19 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
                 const S a = sc.alpha[p];
                 if (a == S(0) || q.rel >= px[p].last) continue;
                 PairEval<S> e;
-                if constexpr (!FILTERED) eval_pair_any(q.st, q.g, sc.xs[c], q.y0 + S(r), e);  // its hit or the filter
+                if constexpr (!FILTERED) {
+                    eval_pair_any(q.st, q.g, sc.xs[c], q.y0 + S(r), e);  // its hit or the filter
+                    if (q.ap.TS > 0) apply_opacity_gain(q.st, q.g, appearance_gain(q.ap, e.u, e.v), e);
+                } else {
+                    e.raw = rmul(q.g.o, sc.ex[p]);  // o f g, as geom_rows_filtered takes it
+                }
                 // the decision and the values blended come from eval_rows, as in the forward
                 e.alpha = a;
                 e.u = sc.u[p];
                 e.v = sc.v[p];
                 e.z = sc.z[p];
                 // anti-aliased, the gains are folded into q.wa: no blur here, and the amplitude slots get them below
-                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], e, q.sf.normal, q.sf.base, q.sf.wv,
-                                                                  q.sf.wp, q.wa, q.sf.K, q.rel, acc,
+                const PairCotangents<S> v = blend_backward_colour(q.st, px[p], e, q.normal, q.ap, q.rel, acc,
                                                                   static_cast<const S*>(nullptr));
                 if constexpr (FILTERED) {
                     sc.v_alpha[p] = v.alpha;
@@ -267,7 +296,7 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
                 geom_rows_filtered<false>(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
             for (int j = 0; j < GEOM_SLOTS; ++j)
                 if (filtered_geom_slot(j)) acc(j, t[j]);
-            for (int k = 0; k < q.sf.K; ++k)  // d(gain a)/da = gain
+            for (int k = 0; k < q.ap.K; ++k)  // d(gain a)/da = gain
                 for (int j = 3; j < 6; ++j) acc.g[G_WAVES + G_PER_WAVE * k + j] *= q.gains[k];
         }
     });
@@ -281,8 +310,9 @@ int64_t cpu_prepare(const SurfelArgs<S>& s, S* geom, int* bounds, int64_t* surfe
 #pragma omp parallel for num_threads(threads) schedule(static)
     for (int r = 0; r < M; ++r) {
         const int64_t i = s.order[r];
-        prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i], s.falloff[i],
-                     *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
+        Geom<S>& g = *reinterpret_cast<Geom<S>*>(geom + GEOM * i);
+        prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i], s.falloff[i], g);
+        prepare_appearance(s, g, i);
         box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     }
     surfel_off[0] = 0;
@@ -344,10 +374,13 @@ void cpu_forward_impl(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads
                 const int i = f.tile_list[pos];
                 int c0, c1, r0, r1;
                 if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
-                eval_rows(s.st, geom[i], sc.xs, y0, r0, r1, sc, false);
                 const SurfelColour<S> sf = surfel_colour(s, i);
-                if (filtered) fold_gains(geom[i], sf.wv, sf.wa, sf.K, gains.data(), folded.data());
-                const S* wa = filtered ? folded.data() : sf.wa;
+                eval_rows(s.st, geom[i], sf.ap, sc.xs, y0, r0, r1, sc, false);
+                Appearance<S> ap = sf.ap;
+                if (filtered) {
+                    fold_gains(geom[i], ap.wv, ap.wa, ap.K, gains.data(), folded.data());
+                    ap.wa = folded.data();
+                }
                 const int rel = pos - start;
                 for (int r = r0; r <= r1; ++r)
                     for (int c = c0; c <= c1; ++c) {
@@ -355,7 +388,7 @@ void cpu_forward_impl(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads
                         const S a = sc.alpha[p];
                         if (a == S(0) || px[p].done) continue;
                         S col[3], pre[3];
-                        wave_color(sf.base, sf.wv, sf.wp, wa, sf.K, sc.u[p], sc.v[p], col, pre);
+                        appearance_color(ap, sc.u[p], sc.v[p], col, pre);
                         blend_forward<IMAGE_ONLY>(s.st, px[p], a, sc.z[p], col, sf.normal, rel);
                         active -= px[p].done;
                     }
@@ -378,7 +411,7 @@ template <class S>
 void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<S>& g, const int64_t* surfel_off,
                   const int* pair_pos, S* partials, int threads) {
     const int W = s.W, H = s.H, K = s.K, M = s.M;
-    const int GW = grad_width(K);
+    const int GW = grad_width(K, s.TS);
     const int nt = tiles_x(W) * tiles_y(H);
     const Geom<S>* geom = reinterpret_cast<const Geom<S>*>(f.geom);
     const bool filtered = s.st.pixel_filter > 0;
@@ -416,12 +449,15 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                     continue;
                 }
                 const Geom<S>& gm = geom[i];
-                eval_rows(s.st, gm, sc.xs, y0, r0, r1, sc, true);
                 const SurfelColour<S> sf = surfel_colour(s, i);
-                if (filtered) fold_gains(gm, sf.wv, sf.wa, sf.K, gains.data(), folded.data());
+                eval_rows(s.st, gm, sf.ap, sc.xs, y0, r0, r1, sc, true);
+                Appearance<S> ap = sf.ap;
+                if (filtered) {
+                    fold_gains(gm, ap.wv, ap.wa, ap.K, gains.data(), folded.data());
+                    ap.wa = folded.data();
+                }
                 const int rel = pos - start;
-                const S* wa = filtered ? folded.data() : sf.wa;
-                const PairPass<S> q{s.st, gm, sf, wa, gains.data(), r0, r1, c0, c1, rel, y0};
+                const PairPass<S> q{s.st, gm, sf.normal, ap, gains.data(), r0, r1, c0, c1, rel, y0};
                 if (filtered)
                     backward_pixels<true>(q, sc, px.data(), row, GW);
                 else

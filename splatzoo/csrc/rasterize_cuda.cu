@@ -59,8 +59,9 @@ __global__ void prepare_kernel(SurfelArgs<S> s, S* geom, int* bounds, int* tile_
     const int r = blockIdx.x * blockDim.x + threadIdx.x;
     if (r >= s.M) return;
     const int64_t i = s.order[r];
-    prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i], s.falloff[i],
-                 *reinterpret_cast<Geom<S>*>(geom + GEOM * i));
+    Geom<S>& g = *reinterpret_cast<Geom<S>*>(geom + GEOM * i);
+    prepare_geom(s.st, s.T + 9 * i, s.center + 2 * i, s.depth[i], s.opacities[i], s.falloff[i], g);
+    prepare_appearance(s, g, i);
     box_pixels(s.boxes + 4 * i, s.W, s.H, bounds + 4 * i);
     tile_count[r] = int(tile_range(bounds + 4 * i).count());
 }
@@ -147,10 +148,11 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
             if (!in_box(sh.b[j], x, y)) continue;
             PairEval<S> e;
             eval_pair_any(st, sh.g[j], px, py, e);
-            if (e.alpha == S(0)) continue;
             const SurfelColour<S> sf = surfel_colour(s, sh.id[j]);
+            if (sf.ap.TS > 0) apply_opacity_gain(st, sh.g[j], appearance_gain(sf.ap, e.u, e.v), e);
+            if (e.alpha == S(0)) continue;
             S col[3], pre[3];
-            wave_color(sf.base, sf.wv, sf.wp, sf.wa, sf.K, e.u, e.v, col, pre, st.pixel_filter > 0 ? sh.g[j].blur : nullptr);
+            appearance_color(sf.ap, e.u, e.v, col, pre, st.pixel_filter > 0 ? sh.g[j].blur : nullptr);
             blend_forward<IMAGE_ONLY>(st, p, e.alpha, e.z, col, sf.normal, base + j - start);
         }
     }
@@ -158,7 +160,8 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
 }
 
 // Sums one gradient slot over the warp, then lane 0 adds it to the surfel's row: one atomic per slot per warp
-// instead of one per pixel. Lanes whose pair did not contribute take part with zero. (Any wave count.)
+// instead of one per pixel. Lanes whose pair did not contribute take part with zero. (Any wave count.) scatter: a
+// slot that differs from lane to lane (a texel), one atomic per lane.
 template <class S>
 struct WarpSum {
     S* row;
@@ -169,14 +172,22 @@ struct WarpSum {
         for (int offset = 16; offset > 0; offset >>= 1) v += __shfl_xor_sync(FULL_WARP, v, offset);
         if ((threadIdx.x & 31) == 0 && v != S(0)) atomicAdd(row + slot, v);
     }
+    __device__ __forceinline__ void scatter(int slot, S v) {
+        if (valid && v != S(0)) atomicAdd(row + slot, v);
+    }
 };
 
-// Accumulates a pair's slots into a register row (compile-time slot indices: see for_each_wave).
+// Accumulates a pair's slots into a register row (compile-time slot indices: see for_each_wave); scatter (texels)
+// adds to the surfel's row in global memory, one atomic per lane.
 template <class S>
 struct RowAcc {
     S* row;
     bool valid;
+    S* surfel_row;
     __device__ __forceinline__ void operator()(int slot, S v) { row[slot] += valid ? v : S(0); }
+    __device__ __forceinline__ void scatter(int slot, S v) {
+        if (valid && v != S(0)) atomicAdd(surfel_row + slot, v);
+    }
 };
 
 // One halving step of a warp reduce-scatter: lanes with BIT set keep the upper HALF of their values, the others
@@ -213,7 +224,8 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
     const auto [t, x, y, inside] = thread_pixel(s.W, s.H);
     const S px = S(x) + S(0.5), py = S(y) + S(0.5);
     const int start = f.tile_start[t];
-    const int GW = grad_width(s.K);
+    const int GW = grad_width(s.K, s.TS);  // the row's stride; the register row holds its first grad_width(K) slots
+    const int GWR = grad_width(s.K);
     __shared__ Batch<S> sh;
     __shared__ int max_last;
     PixelBwd<S> p{};  // a pixel outside the image keeps last = 0: it never contributes
@@ -235,10 +247,11 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
             if (!__any_sync(FULL_WARP, candidate)) continue;
             PairEval<S> e;
             eval_pair_any(st, sh.g[j], px, py, e);  // rounds as in the forward: the same pairs contribute
-            const bool valid = candidate && e.alpha != S(0);
-            if (!__any_sync(FULL_WARP, valid)) continue;
             const int64_t i = sh.id[j];
             const SurfelColour<S> sf = surfel_colour(s, i);
+            if (sf.ap.TS > 0) apply_opacity_gain(st, sh.g[j], appearance_gain(sf.ap, e.u, e.v), e);
+            const bool valid = candidate && e.alpha != S(0);
+            if (!__any_sync(FULL_WARP, valid)) continue;
             S* surfel_row = rows + i * GW;
             PixelBwd<S> q = p;
             if constexpr (KMAX >= 0) {
@@ -246,16 +259,16 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
                 S row[ROW];
 #pragma unroll
                 for (int k = 0; k < ROW; ++k) row[k] = S(0);
-                RowAcc<S> acc{row, valid};
-                blend_backward<KMAX>(st, q, sh.g[j], e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+                RowAcc<S> acc{row, valid, surfel_row};
+                blend_backward<KMAX>(st, q, sh.g[j], e, sf.normal, sf.ap, rel, acc);
                 warp_reduce_scatter<S, ROW>(row);
                 const int first = int(threadIdx.x & 31) * (ROW / 32);
 #pragma unroll
                 for (int k = 0; k < ROW / 32; ++k)
-                    if (first + k < GW && row[k] != S(0)) atomicAdd(surfel_row + first + k, row[k]);
+                    if (first + k < GWR && row[k] != S(0)) atomicAdd(surfel_row + first + k, row[k]);
             } else {
                 WarpSum<S> acc{surfel_row, valid};
-                blend_backward(st, q, sh.g[j], e, sf.normal, sf.base, sf.wv, sf.wp, sf.wa, sf.K, rel, acc);
+                blend_backward(st, q, sh.g[j], e, sf.normal, sf.ap, rel, acc);
             }
             if (valid) p = q;
         }
@@ -267,7 +280,7 @@ __global__ void finalize_kernel(SurfelArgs<S> s, GradArgs<S> g, const S* rows) {
     const int r = blockIdx.x * blockDim.x + threadIdx.x;
     if (r >= s.M) return;
     const int64_t i = s.order[r];
-    finalize_surfel(s, g, i, rows + i * grad_width(s.K));
+    finalize_surfel(s, g, i, rows + i * grad_width(s.K, s.TS));
 }
 
 template <class S, int KMAX>

@@ -1,6 +1,6 @@
 // Per-(surfel, pixel) maths of the splatzoo tile rasterizers, written once for the C++ and the CUDA tile loops.
 //
-// It reproduces splatzoo/rasterizers/reference.py (_shade_rect, _wave_color) operation for operation, plus the
+// It reproduces splatzoo/rasterizers/reference.py (_shade_rect, _appearance_color) operation for operation, plus the
 // hand-written derivatives. The tile loops (rasterize_cpu.cpp, rasterize_cuda.cu) own binning and traversal only.
 //
 // Gradients of one (surfel, pixel) pair are accumulated through a functor `acc(slot, value)` into the slots below
@@ -49,7 +49,8 @@ struct Geom {
     S s;                 // falloff exponent: 0 the Gaussian, > 0 the Beta kernel (falloff below)
 };
 
-// Gradient slots of one surfel row.
+// Gradient slots of one surfel row: the pair's geometry and opacity, then the appearance block (see the appearance
+// section: base colour, waves, texels), [G_APPEARANCE, grad_width(K, TS)).
 enum : int {
     G_C = 0,        // sum over pixels of dL/dc            (3)
     G_CX = 3,       // sum of (x - cx) dL/dc               (3)
@@ -58,18 +59,22 @@ enum : int {
     G_ZC = 12,      // dL/d centre depth (filter wins)     (1)
     G_CENTER = 13,  // dL/d centre_px through the filter   (2)
     G_O = 15,       // dL/d opacity                        (1)
-    G_BASE = 16,    // dL/d base colour                    (3)
-    G_NORMAL = 19,  // dL/d surfel normal                  (3)
-    G_A = 22,       // dL/dA through the footprint's Jacobian (3; anti-aliased only)
-    G_B = 25,       // dL/dB through the footprint's Jacobian (3; anti-aliased only)
-    G_S = 28,       // dL/d falloff exponent                (1)
-    G_WAVES = 29,   // per wave: d k_x, d k_y, d phi (the wave's phase only), d a (3)
+    G_NORMAL = 16,  // dL/d surfel normal                  (3)
+    G_A = 19,       // dL/dA through the footprint's Jacobian (3; anti-aliased only)
+    G_B = 22,       // dL/dB through the footprint's Jacobian (3; anti-aliased only)
+    G_S = 25,       // dL/d falloff exponent                (1)
+    G_APPEARANCE = 26,  // the appearance block starts here
+    G_BASE = 26,    // dL/d base colour                    (3)
+    G_WAVES = 29,   // per wave: d k_x, d k_y, d phi (the wave's phase only), d a (3); then the texels (g_texels)
 };
 // Anti-aliased, a wave's gain exp(-k^T b k / 2) has the same blur b (the surfel's) at every pixel, so its gradients
 // into k and b are per-surfel factors times the sum over pixels of dL/d gain x gain, which is a . (d a):
 // finalize_grads applies them. The pixels only ever see a wave's gain times its amplitude.
 constexpr int G_PER_WAVE = 6;
-SZ_HD constexpr int grad_width(int K) { return G_WAVES + G_PER_WAVE * K; }
+constexpr int TEX_CHANNELS = 4;  // a texel: r, g, b, alpha
+// The texels' slots, TEX_CHANNELS per texel in the texture's own order, after the K waves' (TS texels a side).
+SZ_HD constexpr int g_texels(int K) { return G_WAVES + G_PER_WAVE * K; }
+SZ_HD constexpr int grad_width(int K, int TS = 0) { return g_texels(K) + TEX_CHANNELS * TS * TS; }
 
 // Runs body(k) for the waves k < K. KMAX >= 0 promises K <= KMAX: the loop is unrolled with compile-time indices,
 // so per-wave arrays and gradient slots can live in registers (the CUDA backward's slot row).
@@ -726,6 +731,29 @@ SZ_HD void eval_pair_any(const Settings& st, const Geom<S>& g, S x, S y, PairEva
         g.s > S(0) ? eval_pair<true>(st, g, x, y, e) : eval_pair<false>(st, g, x, y, e);
 }
 
+// ---- appearance: what a surfel looks like at a pair ---------------------------------------------------------
+// An appearance gives, at the point (u, v) of the surfel where a pair's colour is taken (the ray's hit; (0, 0) where
+// the screen filter wins; anti-aliased the footprint's centre P x), an rgb colour and an opacity gain g(u, v) in
+// [0, 1] that multiplies o times the falloff. Its backward goes into its own block of slots, [G_APPEARANCE,
+// grad_width), and back to (u, v) (appearance_backward), and finalize_appearance maps the block to the fields'
+// gradients. Two kinds, summed (a surfel has either, both or neither):
+// - the wave bank: rgb = c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k) (g_k = 1, or anti-aliased the footprint's
+//   gain of wave k, wave_gain); opacity gain 1;
+// - the texture (TS > 0): TS x TS RGBA texels over (u, v) in [-TEXTURE_RADIUS, TEXTURE_RADIUS]^2, texel (r, c)
+//   centred at -R + (c + 1/2, r + 1/2) 2R/TS, sampled bilinearly and clamped to the edge outside; its rgb is added
+//   to the colour, its alpha is the opacity gain. Anti-aliased, the texture is prefiltered once per surfel
+//   (prefilter_texture): its deviation from its mean, per channel, times the footprint's gain at the texel grid's
+//   Nyquist frequency.
+// The colour is clamped at 0 after the sum (the clamp belongs to the blend, blend_backward_colour).
+template <class S>
+struct Appearance {
+    const S *base, *wv, *wp, *wa;  // wave bank: base colour [3]; per wave k [K,2], phi [K], a [K,3]
+    int K;                         // waves in use
+    int row_K;                     // the batch's K: the slot row's layout (its texel slots follow K waves')
+    const S* tex;                  // texture [TS,TS,4] (anti-aliased: prefiltered); unread when TS = 0
+    int TS;                        // texels a side; 0: no texture
+};
+
 // Footprint attenuation of wave (kx, ky) under the blur (b00, b01, b11): exp(-k^T b k / 2).
 template <class S>
 SZ_HD S wave_gain(const S* blur, S kx, S ky) {
@@ -742,14 +770,103 @@ SZ_HD void fold_gains(const Geom<S>& g, const S* wv, const S* wa, int K, S* gain
     }
 }
 
-// c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)); `pre` keeps the value before the clamp. g_k = 1
-// (also when a caller has folded the gains into the amplitudes: fold_gains), or, anti-aliased, wave_gain(blur, k_k)
-// (blur: Geom::blur).
+// The texture's half-width in sigmas (splatzoo.types.TEXTURE_RADIUS).
+constexpr double TEXTURE_RADIUS = 3.0;
+
+// The texture's footprint gain, anti-aliased: exp(-k_n^2 (b00 + b11) / 4), the mean over the u and v axes of a wave's
+// gain at the texel grid's Nyquist frequency k_n = pi TS / (2R) (blur: Geom::blur). Once per surfel.
+SZ_HD double texture_nyquist_sq(int TS) {
+    const double kn = 3.14159265358979323846 * double(TS) / (2.0 * TEXTURE_RADIUS);
+    return kn * kn;
+}
+template <class S>
+SZ_HD S texture_gain(const S* blur, int TS) {
+    return sz_exp(S(-0.25) * S(texture_nyquist_sq(TS)) * (blur[0] + blur[2]));
+}
+
+// out = mean + gain (tex - mean), per channel, mean over the texels: the texture an anti-aliased pixel sees.
+template <class S>
+SZ_HD void prefilter_texture(const S* blur, const S* tex, int TS, S* out) {
+    const S gain = texture_gain(blur, TS);
+    const int n = TS * TS;
+    for (int c = 0; c < TEX_CHANNELS; ++c) {
+        S sum = S(0);
+        for (int j = 0; j < n; ++j) sum += tex[TEX_CHANNELS * j + c];
+        const S mean = sum / S(n);
+        for (int j = 0; j < n; ++j) out[TEX_CHANNELS * j + c] = mean + gain * (tex[TEX_CHANNELS * j + c] - mean);
+    }
+}
+
+// Where (u, v) falls on the texel grid: the first texel (its offset in the texture), the offsets to the next column
+// and row (0 at the last, or for one texel), the bilinear fractions, and d(texel coordinate)/du, /dv (0 where the
+// coordinate is clamped to the edge). A non-finite u or v reads texel 0 (such pairs are culled; no read goes out of
+// the texture).
+template <class S>
+struct TexelSpot {
+    int i00, du, dv;
+    S fu, fv, gu, gv;
+};
+template <class S>
+SZ_HD S texel_axis(int TS, S x, S& grad, int& i0, int& step) {
+    const S scale = S(double(TS) / (2.0 * TEXTURE_RADIUS));
+    const S t = radd(rmul(radd(x, S(TEXTURE_RADIUS)), scale), S(-0.5));  // rounded alike everywhere: see rmul
+    const S top = S(TS - 1);
+    const S c = smin(smax(t, S(0)), top);  // smax drops a NaN
+    grad = t >= S(0) ? scale : S(0);  // torch.clamp passes the gradient for lo <= t <= hi
+    grad = t <= top ? grad : S(0);
+    const int last = TS >= 2 ? TS - 2 : 0;
+    int i = int(c);
+    i = i < last ? i : last;
+    i0 = i;
+    step = i + 1 < TS ? 1 : 0;
+    return radd(c, -S(i));
+}
+template <class S>
+SZ_HD TexelSpot<S> texel_spot(int TS, S u, S v) {
+    TexelSpot<S> t;
+    int iu, iv, su, sv;
+    t.fu = texel_axis(TS, u, t.gu, iu, su);
+    t.fv = texel_axis(TS, v, t.gv, iv, sv);
+    t.i00 = TEX_CHANNELS * (iv * TS + iu);
+    t.du = TEX_CHANNELS * su;
+    t.dv = TEX_CHANNELS * TS * sv;
+    return t;
+}
+// Channel c of the bilinear sample: lerp along u on the two rows, then along v. (Each operation rounded on its own:
+// the alpha channel decides which pairs blend, in the forward and the backward alike; see rmul.)
+template <class S>
+SZ_HD S texel_lerp(const S* tex, const TexelSpot<S>& t, int c) {
+    const S* p = tex + t.i00 + c;
+    const S a = radd(p[0], rmul(t.fu, radd(p[t.du], -p[0])));
+    const S b = radd(p[t.dv], rmul(t.fu, radd(p[t.dv + t.du], -p[t.dv])));
+    return radd(a, rmul(t.fv, radd(b, -a)));
+}
+
+// The opacity gain g(u, v): the texture's alpha, 1 without a texture.
+template <class S>
+SZ_HD S appearance_gain(const Appearance<S>& ap, S u, S v) {
+    if (ap.TS == 0) return S(1);
+    return texel_lerp(ap.tex, texel_spot(ap.TS, u, v), TEX_CHANNELS - 1);
+}
+
+// The pair's opacity gain into its alpha (after eval_pair*): ex and raw take the factor, the blend decision is made
+// again. The tile loops call it only for surfels with a gain (a texture), so the others keep their exact values.
+template <class S>
+SZ_HD void apply_opacity_gain(const Settings& st, const Geom<S>& g, S gain, PairEval<S>& e) {
+    e.ex = rmul(e.ex, gain);
+    e.raw = rmul(g.o, e.ex);
+    e.alpha = pair_alpha(st, e.raw, e.z);
+}
+
+// rgb(u, v) before the clamp (pre) and after it (col). The waves' g_k = 1 (also when a caller has folded the gains
+// into the amplitudes: fold_gains), or, anti-aliased, wave_gain(blur, k_k) (blur: Geom::blur). sn_out, cs_out,
+// gain_out keep each wave's sin, gain times cos and gain for the backward. Returns the opacity gain at (u, v).
 template <int KMAX = -1, class S>
-SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int K, S u, S v, S col[3], S pre[3],
-                      const S* blur = nullptr, S* sn_out = nullptr, S* cs_out = nullptr, S* gain_out = nullptr) {
+SZ_HD S appearance_color(const Appearance<S>& ap, S u, S v, S col[3], S pre[3], const S* blur = nullptr,
+                         S* sn_out = nullptr, S* cs_out = nullptr, S* gain_out = nullptr) {
+    const S *base = ap.base, *wv = ap.wv, *wp = ap.wp, *wa = ap.wa;
     S r = base[0], gg = base[1], b = base[2];
-    for_each_wave<KMAX>(K, [&](int k) {
+    for_each_wave<KMAX>(ap.K, [&](int k) {
         S sn, cs;
         sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
         if (blur) {
@@ -765,8 +882,78 @@ SZ_HD void wave_color(const S* base, const S* wv, const S* wp, const S* wa, int 
         gg += cs * wa[3 * k + 1];
         b += cs * wa[3 * k + 2];
     });
+    S gain = S(1);
+    if (ap.TS > 0) {
+        const TexelSpot<S> t = texel_spot(ap.TS, u, v);
+        r += texel_lerp(ap.tex, t, 0);
+        gg += texel_lerp(ap.tex, t, 1);
+        b += texel_lerp(ap.tex, t, 2);
+        gain = texel_lerp(ap.tex, t, 3);
+    }
     pre[0] = r; pre[1] = gg; pre[2] = b;
     col[0] = smax(r, S(0)); col[1] = smax(gg, S(0)); col[2] = smax(b, S(0));
+    return gain;
+}
+
+// The colour's and the opacity gain's backward: v_col = dL/d pre (the clamp's gate applied), v_gain = dL/d gain.
+// Accumulates the appearance block's slots and returns dL/d(u, v) in v_u, v_v (added). The base colour and wave
+// slots go through acc (the same slots in the same order whatever the pair: the CUDA warp sums); the texels, which
+// differ from pixel to pixel, through acc.scatter. sn, cs, gains: appearance_color's sn_out, cs_out, gain_out, or
+// nullptr to recompute them (gains: anti-aliased without folded amplitudes, else nullptr).
+template <int KMAX = -1, class S, class Acc>
+SZ_HD void appearance_backward(const Appearance<S>& ap, S u, S v, const S v_col[3], S v_gain, const S* blur,
+                               const S* sn_c, const S* cs_c, const S* gain_c, Acc& acc, S& v_u, S& v_v) {
+    const S *wv = ap.wv, *wp = ap.wp, *wa = ap.wa;
+    acc(G_BASE + 0, v_col[0]);
+    acc(G_BASE + 1, v_col[1]);
+    acc(G_BASE + 2, v_col[2]);
+    const bool filtered = blur != nullptr;
+    for_each_wave<KMAX>(ap.K, [&](int k) {
+        S sn, cs, gk = S(1);  // cs: the wave's factor in the colour, gain times cos
+        if (sn_c) {
+            sn = sn_c[k];
+            cs = cs_c[k];
+            if (filtered) gk = gain_c[k];
+        } else {
+            sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
+            if (filtered) {
+                gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
+                cs *= gk;
+            }
+        }
+        S v_cos = v_col[0] * wa[3 * k] + v_col[1] * wa[3 * k + 1] + v_col[2] * wa[3 * k + 2];
+        S v_phase = -sn * gk * v_cos;  // d/d(phase)
+        int o = G_WAVES + G_PER_WAVE * k;
+        acc(o + 0, v_phase * u);
+        acc(o + 1, v_phase * v);
+        acc(o + 2, v_phase);
+        acc(o + 3, cs * v_col[0]);
+        acc(o + 4, cs * v_col[1]);
+        acc(o + 5, cs * v_col[2]);
+        v_u += v_phase * wv[2 * k];
+        v_v += v_phase * wv[2 * k + 1];
+    });
+    if (ap.TS > 0) {
+        const TexelSpot<S> t = texel_spot(ap.TS, u, v);
+        const S w00 = (S(1) - t.fu) * (S(1) - t.fv), w01 = t.fu * (S(1) - t.fv);
+        const S w10 = (S(1) - t.fu) * t.fv, w11 = t.fu * t.fv;
+        const int o = g_texels(ap.row_K) + t.i00;
+        S d_fu = S(0), d_fv = S(0);
+        for (int c = 0; c < TEX_CHANNELS; ++c) {
+            const S vc = c < 3 ? v_col[c] : v_gain;
+            acc.scatter(o + c, w00 * vc);
+            acc.scatter(o + c + t.du, w01 * vc);
+            acc.scatter(o + c + t.dv, w10 * vc);
+            acc.scatter(o + c + t.dv + t.du, w11 * vc);
+            const S* p = ap.tex + t.i00 + c;
+            const S a = p[0] + t.fu * (p[t.du] - p[0]);
+            const S b = p[t.dv] + t.fu * (p[t.dv + t.du] - p[t.dv]);
+            d_fu += vc * ((S(1) - t.fv) * (p[t.du] - p[0]) + t.fv * (p[t.dv + t.du] - p[t.dv]));
+            d_fv += vc * (b - a);
+        }
+        v_u += d_fu * t.gu;
+        v_v += d_fv * t.gv;
+    }
 }
 
 // Waves per surfel whose sin/cos the backward keeps on the stack (more are recomputed, same values). On a GPU the
@@ -976,29 +1163,28 @@ struct PairCotangents {
     S alpha, z, u, v;
 };
 
-// One contribution, back to front, up to its geometry: updates the pixel state, accumulates the colour, normal and
-// wave slots and returns what geom_backward(_filtered) takes from here.
+// One contribution, back to front, up to its geometry: updates the pixel state, accumulates the normal and the
+// appearance slots and returns what geom_backward(_filtered) takes from here.
 // Contributions must be visited in reverse blending order, each exactly once. e: the pair (alpha > 0 and
-// pos < last); base..wa: this surfel's colour parameters; n its normal; blur: Geom::blur when anti-aliased, else
-// nullptr. Calls acc for the same slots in the same order whatever the pair. A caller that folds the gains into
-// the amplitudes (fold_gains) passes the folded ones and no blur, and multiplies each wave's amplitude slots by its
-// gain afterwards: every other slot comes out the same.
+// pos < last; with an opacity gain, e.raw is o f g as apply_opacity_gain left it); ap: this surfel's appearance; n its
+// normal; blur: Geom::blur when anti-aliased, else nullptr. Calls acc for the same slots in the same order whatever
+// the pair (and acc.scatter for the texels). A caller that folds the gains into the amplitudes (fold_gains) passes
+// the folded ones and no blur, and multiplies each wave's amplitude slots by its gain afterwards: every other slot
+// comes out the same.
 template <int KMAX = -1, class S, class Acc>
 SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p, const PairEval<S>& e, const S* n,
-                                              const S* base, const S* wv, const S* wp, const S* wa, int K, int pos,
-                                              Acc& acc, const S* blur) {
+                                              const Appearance<S>& ap, int pos, Acc& acc, const S* blur) {
     S a = e.alpha;
     S oma = S(1) - a;
     S Ti = p.T / oma;  // transmittance before this contribution
     S w = a * Ti;
     S col[3], pre[3];
-    const bool filtered = blur != nullptr;
     // sin/cos (cos times the footprint gain) of each wave, computed once for the colour and reused for the derivatives
     constexpr int CACHE = KMAX >= 0 ? (KMAX > 0 ? KMAX : 1) : SINCOS_CACHE;
     S sn_cache[CACHE], cs_cache[CACHE], gain_cache[CACHE];
-    const bool cached = KMAX >= 0 || K <= SINCOS_CACHE;
-    wave_color<KMAX>(base, wv, wp, wa, K, e.u, e.v, col, pre, blur, cached ? sn_cache : nullptr,
-                     cached ? cs_cache : nullptr, cached ? gain_cache : nullptr);
+    const bool cached = KMAX >= 0 || ap.K <= SINCOS_CACHE;
+    const S gain = appearance_color<KMAX>(ap, e.u, e.v, col, pre, blur, cached ? sn_cache : nullptr,
+                                          cached ? cs_cache : nullptr, cached ? gain_cache : nullptr);
     S m = ndc_depth(st, e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
     S f = p.v_rgb[0] * col[0] + p.v_rgb[1] * col[1] + p.v_rgb[2] * col[2] + p.v_D * e.z +
@@ -1016,35 +1202,13 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
     // colour: the clamp at 0 passes the gradient where the value is >= 0 (torch.clamp)
     S v_col[3];
     for (int i = 0; i < 3; ++i) v_col[i] = pre[i] >= S(0) ? w * p.v_rgb[i] : S(0);
-    acc(G_BASE + 0, v_col[0]);
-    acc(G_BASE + 1, v_col[1]);
-    acc(G_BASE + 2, v_col[2]);
+    // the opacity gain: alpha = min(o f g, alpha_max), so dL/dg = dL/d alpha o f = dL/d alpha raw / g below the clamp
+    // (g > 0 wherever a pair contributes)
+    S v_gain = S(0);
+    if (ap.TS > 0) v_gain = e.raw > S(st.alpha_max) ? S(0) : v_alpha * e.raw / gain;
     S v_u = S(0), v_v = S(0);
-    for_each_wave<KMAX>(K, [&](int k) {
-        S sn, cs, gk = S(1);  // cs: the wave's factor in the colour, gain times cos
-        if (cached) {
-            sn = sn_cache[k];
-            cs = cs_cache[k];
-            if (filtered) gk = gain_cache[k];
-        } else {
-            sz_sincos(e.u * wv[2 * k] + e.v * wv[2 * k + 1] + wp[k], sn, cs);
-            if (filtered) {
-                gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
-                cs *= gk;
-            }
-        }
-        S v_cos = v_col[0] * wa[3 * k] + v_col[1] * wa[3 * k + 1] + v_col[2] * wa[3 * k + 2];
-        S v_phase = -sn * gk * v_cos;  // d/d(phase)
-        int o = G_WAVES + G_PER_WAVE * k;
-        acc(o + 0, v_phase * e.u);
-        acc(o + 1, v_phase * e.v);
-        acc(o + 2, v_phase);
-        acc(o + 3, cs * v_col[0]);
-        acc(o + 4, cs * v_col[1]);
-        acc(o + 5, cs * v_col[2]);
-        v_u += v_phase * wv[2 * k];
-        v_v += v_phase * wv[2 * k + 1];
-    });
+    appearance_backward<KMAX>(ap, e.u, e.v, v_col, v_gain, blur, cached ? sn_cache : nullptr,
+                              cached ? cs_cache : nullptr, cached ? gain_cache : nullptr, acc, v_u, v_v);
     return {v_alpha, v_z, v_u, v_v};
 }
 
@@ -1052,10 +1216,9 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
 // slots in the same order whatever the pair (see geom_backward).
 template <int KMAX = -1, class S, class Acc>
 SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, const PairEval<S>& e, const S* n,
-                          const S* base, const S* wv, const S* wp, const S* wa, int K, int pos, Acc& acc) {
+                          const Appearance<S>& ap, int pos, Acc& acc) {
     const bool filtered = st.pixel_filter > 0;
-    const PairCotangents<S> v =
-        blend_backward_colour<KMAX>(st, p, e, n, base, wv, wp, wa, K, pos, acc, filtered ? g.blur : nullptr);
+    const PairCotangents<S> v = blend_backward_colour<KMAX>(st, p, e, n, ap, pos, acc, filtered ? g.blur : nullptr);
     if (filtered)
         g.s > S(0) ? geom_backward_filtered<true>(st, g, e, v.alpha, v.z, v.u, v.v, acc)
                    : geom_backward_filtered<false>(st, g, e, v.alpha, v.z, v.u, v.v, acc);
@@ -1064,34 +1227,17 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
                    : geom_backward<false>(st, g, e, v.alpha, v.z, v.u, v.v, acc);
 }
 
-// A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
-// A = m2 x m3, B = m3 x m1, C = m1 x m2 with c(x, y) = x A + y B + C, so dL/dA = sum x dL/dc = G_CX + cx G_C, etc.
-// Anti-aliased, the waves' blur goes through centre_footprint, whose cz = C2 + cx A2 + cy B2 also depends on the
-// centre.
+// The appearance block of a surfel's summed slot row -> the gradients of its appearance fields (ap: its fields as
+// given, the texture not prefiltered; ap.K = ap.row_K = the batch's K). Anti-aliased (b: the blur the pixels used),
+// the waves' and the texture's footprint gains add their gradients into v_blur (b00, b01, b11).
 template <class S, class R>
-SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const S* wv, const S* wa, const R* Gs,
-                          int K, S* v_T, S* v_center, S* v_depth, S* v_normal, S* v_opac, S* v_falloff, S* v_base,
-                          S* v_wv, S* v_wp, S* v_wa) {
-    double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
-    double cx = double(center[0]), cy = double(center[1]);
-    // the slots hold gradients of the scaled A, B, C the pixels saw (prepare_geom)
-    const double scale = plane_coeffs(T9, center).scale;
-    for (int i = 0; i < 3; ++i) {
-        m1[i] = double(T9[i]);
-        m2[i] = double(T9[3 + i]);
-        m3[i] = double(T9[6 + i]);
-        v_C[i] = double(Gs[G_C + i]) * scale;
-        v_A[i] = (double(Gs[G_CX + i]) + double(Gs[G_A + i])) * scale + cx * v_C[i];
-        v_B[i] = (double(Gs[G_CY + i]) + double(Gs[G_B + i])) * scale + cy * v_C[i];
-    }
-    double v_cx = double(Gs[G_CENTER]), v_cy = double(Gs[G_CENTER + 1]);
+SZ_HD void finalize_appearance(const Appearance<S>& ap, const R* Gs, bool filtered, const double* b, double* v_blur,
+                               S* v_base, S* v_wv, S* v_wp, S* v_wa, S* v_tex) {
+    const int K = ap.row_K;
+    const S *wv = ap.wv, *wa = ap.wa;
+    for (int i = 0; i < 3; ++i) v_base[i] = S(Gs[G_BASE + i]);
     // anti-aliased, the gains exp(-k^T b k / 2) with b the blur the pixels used (Geom::blur, rounded to S):
     // d/dk = -gain b k, d/db = -gain k k^T / 2, times the summed dL/d gain x gain = a . (dL/da)
-    const bool filtered = st.pixel_filter > 0;
-    CentreFootprint fp{};
-    if (filtered) fp = centre_footprint(st, T9, center);
-    const double b[3] = {double(S(fp.blur[0])), double(S(fp.blur[1])), double(S(fp.blur[2]))};
-    double v_blur[3] = {0.0, 0.0, 0.0};
     for (int k = 0; k < K; ++k) {
         const R* w = Gs + G_WAVES + G_PER_WAVE * k;
         double v_kx = double(w[0]), v_ky = double(w[1]);
@@ -1112,6 +1258,61 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
         v_wa[3 * k + 1] = S(w[4]);
         v_wa[3 * k + 2] = S(w[5]);
     }
+    const int n = ap.TS * ap.TS;
+    const R* gt = Gs + g_texels(K);  // dL/d (the texture the pixels saw)
+    if (n == 0) return;
+    if (!filtered) {
+        for (int j = 0; j < TEX_CHANNELS * n; ++j) v_tex[j] = S(gt[j]);
+        return;
+    }
+    // prefiltered: t' = mean + gain (t - mean), gain = exp(-k_n^2 (b00 + b11) / 4)
+    const double kn2 = texture_nyquist_sq(ap.TS);
+    const double gain = exp(-0.25 * kn2 * (b[0] + b[2]));
+    double v_gain = 0.0;
+    for (int c = 0; c < TEX_CHANNELS; ++c) {
+        double sum_t = 0.0, sum_v = 0.0;
+        for (int j = 0; j < n; ++j) {
+            sum_t += double(ap.tex[TEX_CHANNELS * j + c]);
+            sum_v += double(gt[TEX_CHANNELS * j + c]);
+        }
+        const double mean_t = sum_t / n, mean_v = sum_v / n;
+        for (int j = 0; j < n; ++j) {
+            const double vj = double(gt[TEX_CHANNELS * j + c]);
+            v_gain += vj * (double(ap.tex[TEX_CHANNELS * j + c]) - mean_t);
+            v_tex[TEX_CHANNELS * j + c] = S(gain * vj + (1.0 - gain) * mean_v);
+        }
+    }
+    v_blur[0] -= 0.25 * kn2 * gain * v_gain;
+    v_blur[2] -= 0.25 * kn2 * gain * v_gain;
+}
+
+// A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
+// A = m2 x m3, B = m3 x m1, C = m1 x m2 with c(x, y) = x A + y B + C, so dL/dA = sum x dL/dc = G_CX + cx G_C, etc.
+// Anti-aliased, the waves' and the texture's blur goes through centre_footprint, whose cz = C2 + cx A2 + cy B2 also
+// depends on the centre. ap: the surfel's appearance fields (finalize_appearance).
+template <class S, class R>
+SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const Appearance<S>& ap, const R* Gs,
+                          S* v_T, S* v_center, S* v_depth, S* v_normal, S* v_opac, S* v_falloff, S* v_base,
+                          S* v_wv, S* v_wp, S* v_wa, S* v_tex) {
+    double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
+    double cx = double(center[0]), cy = double(center[1]);
+    // the slots hold gradients of the scaled A, B, C the pixels saw (prepare_geom)
+    const double scale = plane_coeffs(T9, center).scale;
+    for (int i = 0; i < 3; ++i) {
+        m1[i] = double(T9[i]);
+        m2[i] = double(T9[3 + i]);
+        m3[i] = double(T9[6 + i]);
+        v_C[i] = double(Gs[G_C + i]) * scale;
+        v_A[i] = (double(Gs[G_CX + i]) + double(Gs[G_A + i])) * scale + cx * v_C[i];
+        v_B[i] = (double(Gs[G_CY + i]) + double(Gs[G_B + i])) * scale + cy * v_C[i];
+    }
+    double v_cx = double(Gs[G_CENTER]), v_cy = double(Gs[G_CENTER + 1]);
+    const bool filtered = st.pixel_filter > 0;
+    CentreFootprint fp{};
+    if (filtered) fp = centre_footprint(st, T9, center);
+    const double b[3] = {double(S(fp.blur[0])), double(S(fp.blur[1])), double(S(fp.blur[2]))};
+    double v_blur[3] = {0.0, 0.0, 0.0};
+    finalize_appearance(ap, Gs, filtered, b, v_blur, v_base, v_wv, v_wp, v_wa, v_tex);
     if (filtered) {
         const double v_cz = centre_blur_backward(st, fp, v_blur, v_A, v_B);
         v_C[2] += v_cz;
@@ -1137,7 +1338,6 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
         v_T[i] = S(v_m1[i]);
         v_T[3 + i] = S(v_m2[i]);
         v_T[6 + i] = S(v_m3[i] + double(Gs[G_M3 + i]));
-        v_base[i] = S(Gs[G_BASE + i]);
         v_normal[i] = S(Gs[G_NORMAL + i]);
     }
     v_center[0] = S(v_cx);

@@ -26,7 +26,7 @@ def header_text() -> str:
     for f in SURFEL_FIELDS:
         if len(f.dims) > MAX_RANK:
             raise ValueError(f"Surfels.{f.name} has {len(f.dims)} trailing dimensions; at most {MAX_RANK}")
-        dims = [("SZ_K" if d == "K" else str(int(d))) for d in f.dims] + ["0"] * (MAX_RANK - len(f.dims))
+        dims = [{"K": "SZ_K", "T": "SZ_T"}.get(d) or str(int(d)) for d in f.dims] + ["0"] * (MAX_RANK - len(f.dims))
         rows.append(f'    {{"{f.name}", Role::{f.role}, {len(f.dims)}, {{{", ".join(dims)}}}}},  // {f.doc}')
     names = " ".join(f"X({f.name})" for f in SURFEL_FIELDS)
     pair = " ".join(f"X({n})" for n in pair_fields())
@@ -41,12 +41,13 @@ namespace sz {{
 
 enum class Role {{ {roles} }};
 constexpr int SZ_K = -1;  // a dimension equal to the batch's wave count K
+constexpr int SZ_T = -2;  // a dimension equal to the batch's texture size T (texels a side)
 
 struct SurfelFieldInfo {{
     const char* name;
     Role role;
     int rank;  // trailing dimensions after N
-    int dims[{MAX_RANK}];  // SZ_K: K
+    int dims[{MAX_RANK}];  // SZ_K: K, SZ_T: T
 }};
 
 constexpr int NUM_SURFEL_FIELDS = {len(SURFEL_FIELDS)};

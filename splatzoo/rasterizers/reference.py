@@ -6,9 +6,11 @@ evaluates every (pixel, surfel) pair densely and composites with a cumulative pr
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
-from ..types import Camera, RenderOutput, Surfels
+from ..types import TEXTURE_RADIUS, Camera, RenderOutput, Surfels
 from .common import (LINEAR_LIMIT, SETTINGS, Projected, RasterSettings, background_tensor, centre_footprint, falloff,
                      ndc_depth, project)
 
@@ -35,7 +37,7 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, setti
     boxes = proj.boxes[order]
     pieces = []  # (x0, x1, y0, y1, dict of [h,w,...] tensors)
     stack = [(0, W, 0, H, order, boxes)]
-    waves = max(1, s.num_waves)
+    waves = max(1, s.num_waves) + (4 if s.texture_size else 0)
     while stack:
         x0, x1, y0, y1, idx, bx = stack.pop()
         keep = (bx[:, 2] >= x0 + 0.5) & (bx[:, 0] <= x1 - 0.5) & (bx[:, 3] >= y0 + 0.5) & (bx[:, 1] <= y1 - 0.5)
@@ -123,7 +125,11 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         gain, q, (u, v) = footprint_filter(u, v, jac, st, hits & linear)
         blur = waves_blur(T, proj.center_px[idx], st)
         z = m3[:, 0] * u + m3[:, 1] * v + m3[:, 2]
-        alpha = torch.clamp(s.opacities[idx] * gain * falloff(q, s.falloff[idx]), max=st.alpha_max)
+        tex = _texture_sample(s, idx, u, v, blur)  # [P,n,4] or None
+        alpha = s.opacities[idx] * gain * falloff(q, s.falloff[idx])
+        if tex is not None:
+            alpha = alpha * tex[..., 3]
+        alpha = torch.clamp(alpha, max=st.alpha_max)
         # the culling box bounds the support (common.FOOTPRINT_PAD): a pixel outside it is not shaded, as in the
         # tile loops, even where a nearly edge-on surfel's footprint would leave a faint fringe beyond it
         box = proj.boxes[idx]
@@ -139,7 +145,11 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         u = torch.where(use3d, u, torch.zeros_like(u))
         v = torch.where(use3d, v, torch.zeros_like(v))
         z = torch.where(use3d, m3[:, 0] * u + m3[:, 1] * v + m3[:, 2], proj.depth[idx].expand_as(u))
-        alpha = torch.clamp(s.opacities[idx] * falloff(rho, s.falloff[idx]), max=st.alpha_max)
+        tex = _texture_sample(s, idx, u, v)
+        alpha = s.opacities[idx] * falloff(rho, s.falloff[idx])
+        if tex is not None:
+            alpha = alpha * tex[..., 3]
+        alpha = torch.clamp(alpha, max=st.alpha_max)
         valid = (alpha >= st.alpha_min) & (z >= st.near)
     alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
     # front-to-back compositing; a prefix of the surfels is kept until T would fall below t_min
@@ -148,7 +158,7 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
     kept = T_after >= st.t_min
     weight = torch.where(kept, alpha * T_before, torch.zeros_like(alpha))  # [P,n]
     T_final = torch.prod(torch.where(kept, 1 - alpha, torch.ones_like(alpha)), dim=1)
-    color = _wave_color(s, idx, u, v, blur)  # [P,n,3]
+    color = _appearance_color(s, idx, u, v, blur, tex)  # [P,n,3]
     rgb = (weight[..., None] * color).sum(1)
     acc = 1 - T_final
     z_safe = torch.where(valid, z, torch.ones_like(z))
@@ -226,12 +236,66 @@ def waves_blur(T, center_px, st: RasterSettings):
     return tuple(b.to(dtype) for b in blur)
 
 
-def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None) -> torch.Tensor:
-    """c(u, v) = max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)) for every pair -> [P,n,3]. g_k = 1, or with
-    blur = (b00, b01, b11) per surfel (waves_blur) exp(-k_k^T b k_k / 2)."""
+def texture_gain(blur, size: int):
+    """The texture's footprint gain per surfel, exp(-k_n^2 (b00 + b11) / 4): the mean over the u and v axes of a wave's
+    gain (exp(-k^T b k / 2)) at the texel grid's Nyquist frequency k_n = pi T / (2 R) (csrc/surfel_math.h
+    texture_gain)."""
+    b00, _, b11 = blur
+    kn = math.pi * size / (2 * TEXTURE_RADIUS)
+    return torch.exp(-0.25 * (kn * kn) * (b00 + b11))
+
+
+def prefilter_texture(texture, blur):
+    """The texture an anti-aliased pixel sees [n,T,T,4]: per channel, its mean plus its deviation from the mean times
+    texture_gain, so texel detail finer than the pixel footprint fades to the mean (as the waves do)."""
+    mean = texture.mean(dim=(1, 2), keepdim=True)
+    return mean + texture_gain(blur, texture.shape[1])[:, None, None, None] * (texture - mean)
+
+
+def _texture_sample(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None):
+    """The texture's bilinear RGBA at (u, v) for every pair -> [P,n,4], or None without a texture (T = 0).
+
+    Texel (r, c) of texture [n,T,T,4] is centred at (u, v) = -R + (c + 1/2, r + 1/2) 2R/T, R = TEXTURE_RADIUS;
+    outside the centres the edge texels extend (clamp to edge). Anti-aliased (blur given), the prefiltered texture."""
+    size = s.texture_size
+    if size == 0:
+        return None
+    tex = s.texture[idx]
+    if blur is not None:
+        tex = prefilter_texture(tex, blur)
+    scale = size / (2 * TEXTURE_RADIUS)
+
+    def axis(x):
+        t = ((x + TEXTURE_RADIUS) * scale - 0.5).nan_to_num(nan=0.0).clamp(0, size - 1)
+        i = t.detach().floor().clamp(max=max(size - 2, 0))
+        return t - i, i.long(), (i + 1).clamp(max=size - 1).long()
+
+    fu, iu0, iu1 = axis(u)
+    fv, iv0, iv1 = axis(v)
+    flat = tex.reshape(tex.shape[0], size * size, 4)
+    n = torch.arange(tex.shape[0], device=tex.device)[None, :]
+
+    def texel(iv, iu):
+        return flat[n, iv * size + iu]  # [P,n,4]
+
+    fu, fv = fu[..., None], fv[..., None]
+    t00, t01, t10, t11 = texel(iv0, iu0), texel(iv0, iu1), texel(iv1, iu0), texel(iv1, iu1)
+    a = t00 + fu * (t01 - t00)
+    b = t10 + fu * (t11 - t10)
+    return a + fv * (b - a)
+
+
+def _appearance_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None,
+                      tex=None) -> torch.Tensor:
+    """The appearance's colour for every pair -> [P,n,3]: max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)
+    + texture rgb(u, v)). g_k = 1, or with blur = (b00, b01, b11) per surfel (waves_blur) exp(-k_k^T b k_k / 2);
+    tex: _texture_sample's [P,n,4] or None."""
     base = s.base_color[idx]  # [n,3]
     if s.num_waves == 0:
-        return torch.clamp(base.expand(u.shape[0], -1, -1), min=0)
+        color = base.expand(u.shape[0], -1, -1)
+        if tex is not None:
+            color = color + tex[..., :3]
+        return torch.clamp(color, min=0)
     k = s.wave_vectors[idx]  # [n,K,2]
     phase = u[..., None] * k[:, :, 0] + v[..., None] * k[:, :, 1] + s.wave_phases[idx]  # [P,n,K]
     amp = s.wave_amplitudes[idx]  # [n,K,3]
@@ -246,4 +310,6 @@ def _wave_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
         kx, ky = k[:, :, 0], k[:, :, 1]
         wave = wave * torch.exp(-0.5 * (b00 * kx * kx + 2 * b01 * kx * ky + b11 * ky * ky))
     color = base + torch.einsum("pnk,nkc->pnc", wave, amp)
+    if tex is not None:
+        color = color + tex[..., :3]
     return torch.clamp(color, min=0)
