@@ -213,3 +213,30 @@ def test_a_small_render_is_the_area_average_of_a_big_one():
         psnr[name] = -10 * math.log10(mse)
     assert psnr["aa"] > 30 and psnr["aa"] > psnr["plain"] + 5, psnr
 
+
+# ---- the textured model -----------------------------------------------------------------------------------------
+
+def test_the_textured_model_starts_as_its_2dgs_surfel_and_learns_its_texture():
+    import splatzoo
+    from test_models import CAM, point_cloud
+
+    pts, cols = point_cloud()
+    plain = splatzoo.create_model("2dgs", pts, cols, seed=1)
+    model = splatzoo.create_model("textured", pts, cols, seed=1, texture_size=8)
+    assert model.config.texture_size == 8 and model.texture().shape == (64, 8, 8, 4)
+    with torch.no_grad():
+        plain.logit_opacity.fill_(1.0)
+        model.logit_opacity.fill_(1.0)
+        a, b = plain.render(CAM, backend="cpu"), model.render(CAM, backend="cpu")
+    # alpha_tex starts at sigmoid(4.6) = 0.99: the render is the 2DGS one but for that 1%
+    assert (a.rgb - b.rgb).abs().max() < 0.02 and (a.alpha - b.alpha).abs().max() < 0.01
+    # a few steps towards a striped target change the texels (and make them differ within a surfel)
+    target = (torch.arange(32) // 2 % 2).float()[None, :, None].expand(32, 32, 3)
+    opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in model.optim_groups(1.0)])
+    for _ in range(5):
+        opt.zero_grad()
+        ((model.render(CAM, backend="cpu").rgb - target) ** 2).mean().backward()
+        opt.step()
+    assert model.summary()["texture_rgb_rms"] > 1e-3
+    with pytest.raises(SplatzooError, match="texture_size"):
+        splatzoo.create_model("textured", pts, cols, texture_size=0)

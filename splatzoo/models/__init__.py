@@ -5,11 +5,15 @@ from ..registry import ModelSpec, register_model
 from .beta import BetaConfig, BetaModel
 from .gabor import AdaptiveGaborConfig, BaselineAConfig, BaselineBModel, BaselineCModel, GaborConfig, GaborModel
 from .surfel2d import Surfel2DConfig, Surfel2DModel
+from .textured import TexturedConfig, TexturedModel
 
 register_model(ModelSpec("2dgs", Surfel2DModel, Surfel2DConfig,
                          "2D Gaussian surfels, one colour each (optional spherical harmonics)"))
 register_model(ModelSpec("beta", BetaModel, BetaConfig,
                          "2D surfels with a learned Beta-kernel falloff (1 - s rho/2)^(1/s): bounded, sharper support"))
+register_model(ModelSpec("textured", TexturedModel, TexturedConfig,
+                         "2DGS surfels with a small RGBA texture each (texture_size x texture_size texels): colour "
+                         "residual and transparency inside a surfel (Textured Gaussians)"))
 register_model(ModelSpec("gabor", GaborModel, GaborConfig,
                          "3D Gabor surfels: N wave orientations with learnable frequency, weight and phase"))
 register_model(ModelSpec("gabor-adaptive", GaborModel, AdaptiveGaborConfig,
