@@ -742,8 +742,8 @@ SZ_HD void eval_pair_any(const Settings& st, const Geom<S>& g, S x, S y, PairEva
 // - the texture (TS > 0): TS x TS RGBA texels over (u, v) in [-TEXTURE_RADIUS, TEXTURE_RADIUS]^2, texel (r, c)
 //   centred at -R + (c + 1/2, r + 1/2) 2R/TS, sampled bilinearly and clamped to the edge outside; its rgb is added
 //   to the colour, its alpha is the opacity gain. Anti-aliased, the texture is prefiltered once per surfel
-//   (prefilter_texture): its deviation from its mean, per channel, times the footprint's gain at the texel grid's
-//   Nyquist frequency.
+//   (prefilter_texture): its deviation from its mean as the surfel shows it (weighted by the Gaussian falloff at the
+//   texel centres), per channel, times the footprint's gain at the texel grid's Nyquist frequency.
 // The colour is clamped at 0 after the sum (the clamp belongs to the blend, blend_backward_colour).
 template <class S>
 struct Appearance {
@@ -784,15 +784,29 @@ SZ_HD S texture_gain(const S* blur, int TS) {
     return sz_exp(S(-0.25) * S(texture_nyquist_sq(TS)) * (blur[0] + blur[2]));
 }
 
-// out = mean + gain (tex - mean), per channel, mean over the texels: the texture an anti-aliased pixel sees.
+// The weight of texel j = (r, c) in the texture's mean: exp(-|centre|^2 / 2), normalised over the texels (what a
+// surfel far smaller than the pixel shows of its texture, for the Gaussian falloff). norm: texel_weight_norm(TS).
+SZ_HD double texel_centre(int TS, int i) { return TEXTURE_RADIUS * ((2.0 * i + 1.0) / TS - 1.0); }
+SZ_HD double texel_weight_norm(int TS) {
+    double sum = 0.0;
+    for (int i = 0; i < TS; ++i) sum += exp(-0.5 * texel_centre(TS, i) * texel_centre(TS, i));
+    return sum * sum;
+}
+SZ_HD double texel_weight(int TS, int j, double norm) {
+    const double cu = texel_centre(TS, j % TS), cv = texel_centre(TS, j / TS);
+    return exp(-0.5 * (cu * cu + cv * cv)) / norm;
+}
+
+// out = mean + gain (tex - mean), per channel, mean = sum_j texel_weight(j) tex_j: the texture an anti-aliased
+// pixel sees.
 template <class S>
 SZ_HD void prefilter_texture(const S* blur, const S* tex, int TS, S* out) {
     const S gain = texture_gain(blur, TS);
     const int n = TS * TS;
+    const double norm = texel_weight_norm(TS);
     for (int c = 0; c < TEX_CHANNELS; ++c) {
-        S sum = S(0);
-        for (int j = 0; j < n; ++j) sum += tex[TEX_CHANNELS * j + c];
-        const S mean = sum / S(n);
+        S mean = S(0);
+        for (int j = 0; j < n; ++j) mean += S(texel_weight(TS, j, norm)) * tex[TEX_CHANNELS * j + c];
         for (int j = 0; j < n; ++j) out[TEX_CHANNELS * j + c] = mean + gain * (tex[TEX_CHANNELS * j + c] - mean);
     }
 }
@@ -1265,21 +1279,22 @@ SZ_HD void finalize_appearance(const Appearance<S>& ap, const R* Gs, bool filter
         for (int j = 0; j < TEX_CHANNELS * n; ++j) v_tex[j] = S(gt[j]);
         return;
     }
-    // prefiltered: t' = mean + gain (t - mean), gain = exp(-k_n^2 (b00 + b11) / 4)
+    // prefiltered: t' = mean + gain (t - mean), mean = sum_j w_j t_j, gain = exp(-k_n^2 (b00 + b11) / 4), so
+    // dL/dt_j = gain v_j + (1 - gain) w_j sum_i v_i and dL/dgain = sum_j v_j (t_j - mean)
     const double kn2 = texture_nyquist_sq(ap.TS);
     const double gain = exp(-0.25 * kn2 * (b[0] + b[2]));
+    const double norm = texel_weight_norm(ap.TS);
     double v_gain = 0.0;
     for (int c = 0; c < TEX_CHANNELS; ++c) {
-        double sum_t = 0.0, sum_v = 0.0;
+        double mean_t = 0.0, sum_v = 0.0;
         for (int j = 0; j < n; ++j) {
-            sum_t += double(ap.tex[TEX_CHANNELS * j + c]);
+            mean_t += texel_weight(ap.TS, j, norm) * double(ap.tex[TEX_CHANNELS * j + c]);
             sum_v += double(gt[TEX_CHANNELS * j + c]);
         }
-        const double mean_t = sum_t / n, mean_v = sum_v / n;
         for (int j = 0; j < n; ++j) {
             const double vj = double(gt[TEX_CHANNELS * j + c]);
             v_gain += vj * (double(ap.tex[TEX_CHANNELS * j + c]) - mean_t);
-            v_tex[TEX_CHANNELS * j + c] = S(gain * vj + (1.0 - gain) * mean_v);
+            v_tex[TEX_CHANNELS * j + c] = S(gain * vj + (1.0 - gain) * texel_weight(ap.TS, j, norm) * sum_v);
         }
     }
     v_blur[0] -= 0.25 * kn2 * gain * v_gain;

@@ -13,12 +13,14 @@ with c0 the 2DGS colour (one per surfel, or spherical harmonics with sh_degree),
 Textured Gaussians, where the texture modulates the base colour) and alpha_tex = sigmoid(logit) in (0, 1). The
 gradients reach the four texels each pixel reads and, through the texture's slope, the surfel's (u, v) and so its
 geometry. Anti-aliased (the training default), the texture is prefiltered by the pixel footprint: its deviation from
-its mean fades by the footprint's gain at the texel grid's Nyquist frequency, so a minified surfel shows its mean.
+its mean (weighted by the falloff at the texel centres) fades by the footprint's gain at the texel grid's Nyquist
+frequency, so a minified surfel shows the mean colour it shows at full size.
 
 The model starts as its 2DGS surfel: the residual rgb is 0 and alpha_tex = sigmoid(4.6) = 0.99 everywhere. Texel rgb
-learns at 2.5e-3 (colour units, twice 2DGS's colour rate in colour units: the texels see a few pixels each), the
-alpha logits at 0.05. texture_size (T) sets the texels a side: 4 (the default: 48 extra floats per surfel) or 8
-(192); BENCHMARKS.md has both against 2dgs.
+learns at 2.5e-3 in colour units (about 3.5x 2DGS's colour rate, 2.5e-3 on an SH coefficient worth 0.28: each texel
+sees only the few pixels around it), the alpha logits at 0.05, the opacity's rate. texture_size (T) sets the texels
+a side: 4, the default (64 floats per surfel on top of 2DGS's 13), or 8 (256); at equal count on the quick sweater
+scene 4 gives the most PSNR per byte (BENCHMARKS.md).
 """
 from __future__ import annotations
 

@@ -245,10 +245,21 @@ def texture_gain(blur, size: int):
     return torch.exp(-0.25 * (kn * kn) * (b00 + b11))
 
 
+def texel_weights(size: int, dtype=torch.float64, device=None) -> torch.Tensor:
+    """[T,T] the texels' weights in the texture's mean: the Gaussian falloff exp(-|centre|^2 / 2) at each texel's
+    centre, normalised (what a surfel far smaller than a pixel shows of its texture)."""
+    c = -TEXTURE_RADIUS + (torch.arange(size, dtype=torch.float64) + 0.5) * (2 * TEXTURE_RADIUS / size)
+    a = torch.exp(-0.5 * c * c)
+    w = a[:, None] * a[None, :]
+    return (w / w.sum()).to(dtype=dtype, device=device)
+
+
 def prefilter_texture(texture, blur):
-    """The texture an anti-aliased pixel sees [n,T,T,4]: per channel, its mean plus its deviation from the mean times
-    texture_gain, so texel detail finer than the pixel footprint fades to the mean (as the waves do)."""
-    mean = texture.mean(dim=(1, 2), keepdim=True)
+    """The texture an anti-aliased pixel sees [n,T,T,4]: per channel, its mean as the surfel shows it (texel_weights)
+    plus its deviation from that mean times texture_gain, so texel detail finer than the pixel footprint fades to
+    the mean (as the waves do)."""
+    w = texel_weights(texture.shape[1], texture.dtype, texture.device)[None, :, :, None]
+    mean = (texture * w).sum(dim=(1, 2), keepdim=True)
     return mean + texture_gain(blur, texture.shape[1])[:, None, None, None] * (texture - mean)
 
 
