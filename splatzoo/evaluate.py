@@ -178,7 +178,8 @@ def metrics_table(m: dict) -> str:
             ("render", f"{num('fps', '.1f')} FPS ({m.get('backend', '-')} backend)"),
             *([("opacity", f"{m['object_alpha']:.3f} mean alpha on the object (inside the masks)")]
               if m.get("object_alpha") is not None else []),
-            ("training", f"{num('train_seconds', '.0f')} s, {m.get('iterations', '-')} iterations")]
+            *([("training", f"{num('train_seconds', '.0f')} s, {m.get('iterations', '-')} iterations")]
+              if m.get("iterations") is not None else [])]
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
 
