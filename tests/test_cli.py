@@ -72,13 +72,18 @@ def test_readme_python_snippet_runs_as_written(tmp_path, monkeypatch):
     blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
     assert blocks, "README.md has no python snippet"
     monkeypatch.chdir(tmp_path)  # the snippet writes model.pt
-    for code in blocks:
-        scope: dict = {}
-        exec(compile(code, "README.md", "exec"), scope)
+    scopes = []
+    for code in blocks:  # every snippet runs: the quick tour and the plugin example
+        scopes.append({})
+        exec(compile(code, "README.md", "exec"), scopes[-1])
+    scope = next(s for s in scopes if "out" in s)
     out = scope["out"]
     assert out.alpha.max() > 0.5 and out.rgb.max() > 0  # it rendered something: the sphere covers the view centre
     assert (tmp_path / "model.pt").is_file()
     assert "model.render(" in readme and scope["picture"].shape == (128, 128, 3)  # the one render call
+    spec = next(s["SPEC"] for s in scopes if "SPEC" in s)  # the plugin example declares a working model
+    plugin = spec.cls(spec.config_cls(), 0)
+    assert plugin.config.texture_size == 8 and spec.name == "stripes-textured"
 
 
 @pytest.fixture(scope="module")
