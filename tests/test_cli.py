@@ -53,7 +53,8 @@ def test_metrics_table_is_readable():
     assert lines[0].split() == ["model", "gabor", "(2000", "primitives,", "0.22", "MB)"]
     assert "PSNR      24.70 dB" in text and "SSIM      0.8667" in text and "120.3 FPS (cpu backend)" in text
     assert "{" not in text  # a table, not JSON
-    assert "PSNR      - dB" in metrics_table({})  # missing fields do not break it
+    empty = metrics_table({})  # missing fields do not break it, and a model file's table has no training line
+    assert [line.split()[:2] for line in empty.splitlines()][2] == ["PSNR", "-"] and "training" not in empty
 
 
 @pytest.mark.parametrize("command", ["train", "synth", "compare"])
