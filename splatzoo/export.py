@@ -772,7 +772,9 @@ def export_run(run, out) -> Path:
 
 @dataclass
 class SpzOptions:
-    version: int = field(default=4, metadata={"help": "SPZ version to write, 3 or 4"})
+    version: int = field(default=3, metadata={
+        "help": "SPZ version to write: 3 (gzip; what Spark 2.2 and most viewers read) or 4 (splat-transform and "
+                "newer readers only)"})
 
     def __post_init__(self):
         if self.version not in (3, 4):
@@ -807,7 +809,7 @@ register_exporter(ExporterSpec(
     "ply", export_ply, PlyOptions, "the 3DGS/2DGS PLY every splat tool reads; splatzoo's own properties (Gabor "
     "waves, plugin parameters) ride along so load_ply restores the model exactly", (".ply",)))
 register_exporter(ExporterSpec(
-    "spz", _converted("spz", ".spz", lambda o: ["--spz-version", str(o.get("version", 4))]), SpzOptions,
+    "spz", _converted("spz", ".spz", lambda o: ["--spz-version", str(o.get("version", 3))]), SpzOptions,
     "Niantic's compressed splats (about 10x smaller), through PlayCanvas splat-transform; surfels as flat Gaussians, "
     "Gabor waves as their mean colour", (".spz",)))
 register_exporter(ExporterSpec(
