@@ -201,7 +201,7 @@ def test_threejs_reads_the_mesh_files(browser, tmp_path):
         browser.load_mesh(tmp_path / "missing.glb")
 
 
-def test_spark_opens_the_compressed_exports(browser, trained_2dgs, tmp_path):
+def test_viewers_open_the_compressed_exports(browser, trained_2dgs, tmp_path):
     """`splatzoo export --format spz` and `sog` (through splat-transform) open in Spark and draw what the PLY draws,
     up to the formats' quantisation. (SPZ version 4, gzip-free, is refused by Spark 2.2: "Invalid gzip header"; the
     default is 3.)"""
@@ -217,9 +217,11 @@ def test_spark_opens_the_compressed_exports(browser, trained_2dgs, tmp_path):
         pytest.skip(str(e))
 
     model, view, ply = trained_2dgs
-    reference = browser.render(ply, view.camera, viewer="spark")
-    for fmt in ("spz", "sog"):
-        path = export(ply, tmp_path / f"model.{fmt.split(':')[0]}", fmt)
-        img = browser.render(path, view.camera, viewer="spark")
-        print(f"\nspark {fmt} vs spark ply: {bv.psnr(img, reference):.2f} dB")
-        assert bv.psnr(img, reference) >= 30.0, fmt
+    # (GaussianSplats3D 0.4.7 reads no SOG, and never finishes loading an SPZ from splat-transform: not tested)
+    for viewer, formats in (("spark", ("spz", "sog")),):
+        reference = browser.render(ply, view.camera, viewer=viewer)
+        for fmt in formats:
+            path = export(ply, tmp_path / f"model.{fmt}", fmt)
+            img = browser.render(path, view.camera, viewer=viewer)
+            print(f"\n{viewer} {fmt} vs {viewer} ply: {bv.psnr(img, reference):.2f} dB")
+            assert bv.psnr(img, reference) >= 30.0, (viewer, fmt)
