@@ -271,3 +271,20 @@ def test_a_model_that_draws_nothing_is_refused_on_load(tmp_path):
         model.logit_opacity[3] = 0.0  # one visible surfel is a model
     splatzoo.save_model(model, tmp_path / "model.pt")
     assert splatzoo.load_model(tmp_path / "model.pt").num_primitives == 64
+
+
+def test_a_textured_model_whose_textures_hide_everything_is_refused_on_load(tmp_path):
+    """Opacities that pass but texture alphas at zero everywhere draw nothing too: loading names the texture."""
+    from splatzoo.errors import SplatzooError
+
+    pts, cols = point_cloud()
+    model = splatzoo.create_model("textured", pts, cols, seed=1)
+    with torch.no_grad():
+        model.texture_alpha_logit.fill_(-30.0)
+    splatzoo.save_model(model, tmp_path / "model.pt")
+    with pytest.raises(SplatzooError, match="texture_alpha_logit: every one of the 64 surfels"):
+        splatzoo.load_model(tmp_path / "model.pt")
+    with torch.no_grad():
+        model.texture_alpha_logit[5, 0, 1] = 0.0  # one texel of one surfel shows
+    splatzoo.save_model(model, tmp_path / "model.pt")
+    assert splatzoo.load_model(tmp_path / "model.pt").num_primitives == 64

@@ -75,6 +75,21 @@ class TexturedModel(Surfel2DModel):
             {"name": "texture_rgb", "params": [self.texture_rgb], "lr": TEXTURE_RGB_LR},
             {"name": "texture_alpha_logit", "params": [self.texture_alpha_logit], "lr": TEXTURE_ALPHA_LR}]
 
+    def draws_nothing(self) -> str | None:
+        from ..rasterizers.common import SETTINGS
+
+        why = super().draws_nothing()
+        n = self.texture_alpha_logit.shape[0]
+        if why is None and n:
+            # the most a surfel's texture can let through: its opacity times its most opaque texel
+            peak = torch.sigmoid(self.logit_opacity.detach()) * torch.sigmoid(
+                self.texture_alpha_logit.detach()).flatten(1).max(1).values
+            if float(peak.max()) < SETTINGS.alpha_min:
+                why = (f"texture_alpha_logit: every one of the {n} surfels has opacity x texture alpha below 1/255 at "
+                       "all its texels, which the rasterizer skips: the model draws nothing and cannot learn (the run "
+                       "diverged or the file was edited)")
+        return why
+
     def summary(self) -> dict:
         with torch.no_grad():
             n = self.texture_rgb.shape[0]
