@@ -159,30 +159,17 @@ class BrowserViewers:
             raise SplatzooError(f"no PLY file at {ply_path}; write one with splatzoo.export.save_ply")
         from PIL import Image
 
-        url = self._server.add_file(ply_path)
-        page = self._browser.new_page(viewport={"width": int(camera.width), "height": int(camera.height)})
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        try:
-            page.set_default_timeout(self.timeout_ms)
-            page.goto(f"{self._server.url}/index.html")
-            page.wait_for_function("window.splatReady === true")
-            args = {"url": url, "viewer": viewer, "camera": camera_json(camera),
-                    "background": [float(c) for c in background], "options": options or {}}
-            try:
-                result = page.evaluate("args => window.renderSplat(args)", args)
-            except Exception as e:
-                raise SplatzooError(f"{viewer} failed to render {ply_path}: {e}"
-                                   + (f" (page errors: {'; '.join(errors)})" if errors else "")) from None
-        finally:
-            page.close()
+        args = {"url": self._server.add_file(ply_path), "viewer": viewer, "camera": camera_json(camera),
+                "background": [float(c) for c in background], "options": options or {}}
+        result = self._evaluate("window.splatReady", "window.renderSplat", args,
+                                f"{viewer} failed to render {ply_path}",
+                                viewport={"width": int(camera.width), "height": int(camera.height)})
         png = base64.b64decode(result["image"].split(",", 1)[1])
         img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64) / 255.0
         if img.shape != (camera.height, camera.width, 3):
             raise SplatzooError(f"{viewer} returned a {img.shape[1]}x{img.shape[0]} image for a "
                                f"{camera.width}x{camera.height} camera")
         return img
-
 
     def load_mesh(self, mesh_path) -> dict:
         """What three.js's own loaders read of a mesh file (.glb through GLTFLoader; .obj through OBJLoader with its
@@ -192,19 +179,24 @@ class BrowserViewers:
             raise SplatzooError(f"no mesh file at {mesh_path}")
         url = self._server.add_file(mesh_path)
         mtl = mesh_path.with_suffix(".mtl")
-        page = self._browser.new_page()
+        args = {"url": url, "mtl": url.rsplit("/", 1)[0] + "/" + urllib.parse.quote(mtl.name)
+                if mesh_path.suffix.lower() == ".obj" and mtl.is_file() else None}
+        return self._evaluate("window.meshReady", "window.loadMesh", args, f"three.js could not load {mesh_path}")
+
+    def _evaluate(self, ready: str, function: str, args: dict, failure: str, viewport: dict | None = None):
+        """await function(args) on a fresh page of the viewer site, once `ready` is true; a failure (with the page's
+        own errors) becomes a SplatzooError starting with `failure`."""
+        page = self._browser.new_page(**({"viewport": viewport} if viewport else {}))
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
         try:
             page.set_default_timeout(self.timeout_ms)
             page.goto(f"{self._server.url}/index.html")
-            page.wait_for_function("window.meshReady === true")
-            args = {"url": url, "mtl": url.rsplit("/", 1)[0] + "/" + urllib.parse.quote(mtl.name)
-                    if mesh_path.suffix.lower() == ".obj" and mtl.is_file() else None}
+            page.wait_for_function(f"{ready} === true")
             try:
-                return page.evaluate("args => window.loadMesh(args)", args)
+                return page.evaluate(f"args => {function}(args)", args)
             except Exception as e:
-                raise SplatzooError(f"three.js could not load {mesh_path}: {e}"
+                raise SplatzooError(f"{failure}: {e}"
                                    + (f" (page errors: {'; '.join(errors)})" if errors else "")) from None
         finally:
             page.close()

@@ -80,7 +80,8 @@ DEFAULT_MAX_WIDTH = 1600  # pixels; wider photos are downscaled unless --resolut
 
 
 def load_scene(path, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
-               background="auto", masks: bool | str = "auto", format: str | None = None, skip_missing: bool = False) -> Scene:
+               background="auto", masks: bool | str = "auto", format: str | None = None,
+               skip_missing: bool = False) -> Scene:
     """Load a dataset folder in any registered format (COLMAP, Blender/NeRF-synthetic, ...), detected automatically.
 
     resolution: downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present); max_width caps the width. With
