@@ -170,6 +170,16 @@ class SplatModel(nn.Module):
         p[rows] = value
         restart_moments(optimizer, p, rows)
 
+    def split_children(self, rows: dict[str, torch.Tensor], offsets: torch.Tensor,
+                       shrink: float) -> dict[str, torch.Tensor]:
+        """Split children's per-primitive rows (densification): `rows` are copies of each child's parent with the
+        child's centre and scales already set; offsets [M,2] is each child's centre in its parent's (u, v), in the
+        parent's sigmas, and the child's sigmas are the parent's / shrink. A model whose appearance varies over
+        (u, v) re-expresses it in the child's frame here, so that the child shows what its parent showed where it
+        sits: at the child's (u', v') the parent's (u, v) = offsets + (u', v') / shrink. The default returns the
+        rows unchanged (right for appearance that is constant over the surfel)."""
+        return rows
+
     def size_bytes(self) -> int:
         """Bytes of stored parameters (float32)."""
         return sum(p.numel() for p in self.parameters()) * 4

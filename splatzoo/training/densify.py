@@ -77,6 +77,24 @@ def _edit_primitives(model: SurfelModel, optimizer: torch.optim.Optimizer, keep:
             optimizer.state[p] = state
 
 
+SPLIT_SHRINK = 1.6  # a split child's scales are its parent's divided by this (2DGS)
+
+
+def split_rows(model: SurfelModel, params: dict[str, torch.Tensor], idx: torch.Tensor,
+               generator: torch.Generator, shrink: float = SPLIT_SHRINK) -> dict[str, torch.Tensor]:
+    """Per-primitive rows of split children, one per entry of `idx` (a parent's index, repeated for each of its
+    children): each child is drawn on its parent's plane at an offset ~ N(0, diag(s^2)) and its scales are the
+    parent's / shrink. The model's `split_children` then moves whatever it defines over (u, v) (waves, textures) so
+    that each child shows the part of its parent's pattern it sits on."""
+    R = quat_to_rotmat(params["quats"][idx])
+    s = torch.exp(params["log_scales"][idx])
+    offset_sigmas = torch.randn(idx.numel(), 2, generator=generator).to(s)  # the offset in the parent's sigmas
+    children = {k: v[idx] for k, v in params.items()}
+    children["means"] = params["means"][idx] + (R[:, :, :2] @ (offset_sigmas * s)[..., None]).squeeze(-1)
+    children["log_scales"] = torch.log(s / shrink)
+    return model.split_children(children, offset_sigmas, shrink)
+
+
 @torch.no_grad()
 def densify_and_prune(model: SurfelModel, optimizer, stats: DensifyStats, *, grad_threshold: float,
                       scene_extent: float, min_opacity: float, generator: torch.Generator,
@@ -99,16 +117,10 @@ def densify_and_prune(model: SurfelModel, optimizer, stats: DensifyStats, *, gra
             hot[top] = True
     clone = hot & (scales <= percent_dense * scene_extent)
     split = hot & ~clone
-    # clones copy the primitive; splits draw two children on the tangent plane, shrunk by 1.6
+    # clones copy the primitive; splits draw two children on the tangent plane, shrunk by SPLIT_SHRINK
     new = {k: v[clone] for k, v in params.items()}
     if split.any():
-        idx = split.nonzero().squeeze(1).repeat(2)
-        R = quat_to_rotmat(params["quats"][idx])
-        s = torch.exp(params["log_scales"][idx])
-        offset = torch.randn(idx.numel(), 2, generator=generator).to(s) * s
-        children = {k: v[idx] for k, v in params.items()}
-        children["means"] = params["means"][idx] + (R[:, :, :2] @ offset[..., None]).squeeze(-1)
-        children["log_scales"] = torch.log(s / 1.6)
+        children = split_rows(model, params, split.nonzero().squeeze(1).repeat(2), generator)
         new = {k: torch.cat([new[k], children[k]]) for k in params}
     opacity = torch.sigmoid(params["logit_opacity"])
     keep = ~split & (opacity >= min_opacity)
