@@ -47,6 +47,9 @@ class SplatModel(nn.Module):
     # the colour [3] behind the surfels that the model was trained over (the photos' own backdrop), the default of
     # render(); None: black (a model trained over random colours, or made outside training). Kept in the checkpoint
     background: tuple[float, float, float] | None = None
+    # the densification strategy a run uses when its config says "auto" (TrainConfig.strategy): "adc", "mcmc" or
+    # "frequency"
+    densify_strategy: str = "adc"
     # names of buffers with one row per primitive (e.g. per-surfel wave counts): densification and loading edit
     # them with the parameters; they are not trained
     primitive_buffers: tuple[str, ...] = ()
@@ -257,6 +260,11 @@ class SurfelModel(SplatModel):
         else:
             self.quats.copy_(torch.rand(points.shape[0], 4, generator=generator))
         self.logit_opacity.fill_(math.log(initial_opacity / (1 - initial_opacity)))
+
+    def effective_opacity(self) -> torch.Tensor:
+        """[N] the most opacity each surfel can show anywhere (what decides whether it is alive): its peak opacity,
+        times whatever else scales it inside the surfel (e.g. a texture's alpha)."""
+        return torch.sigmoid(self.logit_opacity)
 
     def draws_nothing(self) -> str | None:
         from ..rasterizers.common import SETTINGS
