@@ -4,6 +4,7 @@ from __future__ import annotations
 from ..registry import ModelSpec, register_model
 from .beta import BetaConfig, BetaModel
 from .gabor import AdaptiveGaborConfig, BaselineAConfig, BaselineBModel, BaselineCModel, GaborConfig, GaborModel
+from .neural_gabor import NeuralGaborConfig, NeuralGaborModel
 from .surfel2d import Surfel2DConfig, Surfel2DModel
 from .textured import TexturedConfig, TexturedModel
 
@@ -19,6 +20,9 @@ register_model(ModelSpec("gabor", GaborModel, GaborConfig,
 register_model(ModelSpec("gabor-adaptive", GaborModel, AdaptiveGaborConfig,
                          "gabor with waves only where they pay: 8 orientations to start, late in training the waves "
                          "whose removal costs the training views under 0.02 dB go"))
+register_model(ModelSpec("neural-gabor", NeuralGaborModel, NeuralGaborConfig,
+                         "surfels whose colour is a tiny per-surfel sine network of (u, v) and the view direction, "
+                         "with frequency-aware densification (Neural Gabor splatting)"))
 register_model(ModelSpec("baseline-a", GaborModel, BaselineAConfig,
                          "ablation A: Gabor surfels with a single wave"))
 register_model(ModelSpec("baseline-b", BaselineBModel, GaborConfig,

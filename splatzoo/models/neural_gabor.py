@@ -1,0 +1,131 @@
+"""Neural Gabor surfels: 2DGS surfels whose colour is a tiny per-surfel network.
+
+Neural Gabor splatting (Watanabe and Umetani, "Neural Gabor Splatting: Enhanced Gaussian Splatting with Neural Gabor
+for High-frequency Surface Reconstruction", CVPR 2026; public code haato-w/neural-gabor-splatting, on 2DGS) gives
+every surfel a one-hidden-layer SIREN: inputs x = (u, v, d), the point's coordinates on the surfel and the view
+direction, H = 6 hidden units with a sine activation, 3 outputs; 57 numbers per surfel at H = 6. Here:
+
+    h_j = sin(omega (w1_j . x + b1_j)),   c(u, v) = max(0, b2 + sum_j w2_j h_j),
+
+with (u, v) in sigmas (the contract's coordinates), d the unit direction from the camera centre to the surfel's
+centre in world coordinates (one per surfel and view, as 2DGS evaluates spherical harmonics), and omega SIREN's
+frequency factor on the first layer. The output is the colour, clamped at 0 as every model's.
+
+One hidden layer with a sine is a bank of waves: with sin(t) = cos(t - pi/2) each hidden unit is the contract's wave
+k_j = omega w1_j[u, v], phi_j = omega (w1_j[d] . d + b1_j) - pi/2, a_j = w2_j over the base colour b2, and its view
+input shifts the wave's phase (and only the phase) from view to view. So the network runs in every rasterizer
+through the wave kind (csrc/surfel_math.h): exact, differentiable through the same kernels, anti-aliased by the same
+footprint gain (a wave's amplitude fades by exp(-k^T b k / 2) under the pixel footprint's blur b), exportable and
+bakeable as waves. What the release's rasterizer does beyond the formula above (its output activation, omega) is not
+in its public repository; the choices here are splatzoo's and are measured in BENCHMARKS.md.
+
+Start (the release's SIREN initialisation, with our colour start): w1, b1 ~ U(-1/5, 1/5) (5 inputs), w2 ~
+INIT_AMPLITUDE U(-1, 1) (the release draws the whole SIREN range, U(-sqrt(6/5), sqrt(6/5)), with random b2; a small
+residual around the point colour keeps the start where a 2DGS surfel's is), b2 the point colour. Learning rates: the
+release's 2.5e-3 for every network parameter. Densification: the release's frequency-aware densification (`--strategy
+auto` picks "frequency" for this model; splatzoo/training/frequency.py) with a hard cap on the count (the trainer's
+budget).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from ..errors import ShapeError
+from ..types import MAX_WAVE_NUMBER, Camera, Surfels
+from .base import SurfelModel, view_directions
+
+INPUTS = 5               # u, v, and the view direction's three components
+INIT_AMPLITUDE = 0.05    # w2 ~ this x U(-1, 1) at the start: the point colour plus a faint pattern
+NETWORK_LR = 2.5e-3      # the release's rate for every network parameter
+
+
+@dataclass
+class NeuralGaborConfig:
+    hidden: int = field(default=6, metadata={"help": "hidden units of each surfel's network (the paper: 6)"})
+    omega: float = field(default=30.0, metadata={
+        "help": "SIREN's frequency factor on the first layer: a hidden unit's wave vector is omega x its (u, v) "
+                "weights, in radians per sigma (larger: finer patterns within reach at the start, and faster)"})
+    view_dependent: bool = field(default=True, metadata={
+        "help": "feed the view direction to the network (the paper); off: colour depends on (u, v) only"})
+
+    def __post_init__(self):
+        if not 1 <= int(self.hidden) <= 32:
+            raise ShapeError(f"hidden must be an integer from 1 to 32, got {self.hidden}")
+        self.hidden = int(self.hidden)
+        if not 0 < float(self.omega) <= 1000:
+            raise ShapeError(f"omega must be a number in (0, 1000], got {self.omega}")
+
+
+class NeuralGaborModel(SurfelModel):
+    densify_strategy = "frequency"
+
+    def __init__(self, config: NeuralGaborConfig, num_primitives: int = 0):
+        super().__init__(config, num_primitives)
+        n, h = num_primitives, config.hidden
+        self.net_w1 = nn.Parameter(torch.zeros(n, h, INPUTS))  # per hidden unit: weights on u, v, d_x, d_y, d_z
+        self.net_b1 = nn.Parameter(torch.zeros(n, h))
+        self.net_w2 = nn.Parameter(torch.zeros(n, h, 3))       # per hidden unit: its colour (the output layer)
+        self.net_b2 = nn.Parameter(torch.zeros(n, 3))          # the output bias: the surfel's base colour
+
+    def init_from_points(self, points, colors, generator):
+        self.init_geometry(points, generator)
+        n, h = self.net_b1.shape
+        bound = 1.0 / INPUTS
+        self.net_w1.copy_(bound * (2 * torch.rand(n, h, INPUTS, generator=generator) - 1))
+        self.net_b1.copy_(bound * (2 * torch.rand(n, h, generator=generator) - 1))
+        self.net_w2.copy_(INIT_AMPLITUDE * (2 * torch.rand(n, h, 3, generator=generator) - 1))
+        self.net_b2.copy_(colors)
+
+    def hidden_inputs(self, camera: Camera) -> torch.Tensor:
+        """[N,H] each hidden unit's pre-activation less its (u, v) term, omega (w1[d] . d + b1): a per-surfel
+        constant for this view."""
+        pre = self.net_b1
+        if self.config.view_dependent:
+            d = view_directions(self.means, camera)
+            pre = pre + (self.net_w1[..., 2:] * d[:, None, :]).sum(-1)
+        return float(self.config.omega) * pre
+
+    def network_color(self, uv: torch.Tensor, camera: Camera) -> torch.Tensor:
+        """[N,P,3] the network evaluated as written (no waves) at points uv [N,P,2] of each surfel, clamped at 0:
+        what surfels() hands the rasterizer, stated directly (tests compare the two)."""
+        omega = float(self.config.omega)
+        t = omega * (uv[:, :, None, :] * self.net_w1[:, None, :, :2]).sum(-1) + self.hidden_inputs(camera)[:, None]
+        return (self.net_b2[:, None] + (torch.sin(t)[..., None] * self.net_w2[:, None]).sum(2)).clamp_min(0)
+
+    def surfels(self, camera: Camera) -> Surfels:
+        g = self.geometry()
+        omega = float(self.config.omega)
+        # wave numbers stop where every rasterizer still agrees (types.MAX_WAVE_NUMBER radians per sigma)
+        limit = MAX_WAVE_NUMBER * (1 - 1e-5)
+        vectors = (omega * self.net_w1[..., :2]).clamp(-limit, limit)
+        phases = self.hidden_inputs(camera) - math.pi / 2  # sin(t) = cos(t - pi/2)
+        return Surfels(g["means"], g["quats"], g["scales"], g["opacities"], self.net_b2, vectors, phases, self.net_w2)
+
+    def split_children(self, rows, offsets, shrink):
+        """A child at `offsets` (parent sigmas), sigmas / shrink: the parent's (u, v) = offsets + (u', v') / shrink, so
+        the (u, v) weights divide by shrink and each hidden unit's bias takes w1[u, v] . offsets."""
+        w1 = rows["net_w1"].clone()
+        rows = dict(rows)
+        rows["net_b1"] = rows["net_b1"] + (w1[..., :2] * offsets[:, None, :].to(w1)).sum(-1)
+        w1[..., :2] = w1[..., :2] / shrink
+        rows["net_w1"] = w1
+        return rows
+
+    def optim_groups(self, scene_extent: float) -> list[dict]:
+        return self.geometry_groups(scene_extent) + [
+            {"name": name, "params": [getattr(self, name)], "lr": NETWORK_LR}
+            for name in ("net_w1", "net_b1", "net_w2", "net_b2")]
+
+    def summary(self) -> dict:
+        with torch.no_grad():
+            if self.net_w1.shape[0] == 0:
+                return {}
+            # how fine the surfels' patterns are: the median wave number, and how much colour the waves carry
+            k = float(self.config.omega) * self.net_w1[..., :2].norm(dim=-1)
+            amplitude = self.net_w2.abs().amax(-1)
+            return {"wave_number_median": round(float(k.median()), 3),
+                    "amplitude_mean": round(float(amplitude.mean()), 4)}
