@@ -61,6 +61,31 @@ def test_dead_surfels_move_onto_live_ones():
     assert relocate_dead(m, opt, torch.Generator().manual_seed(1)) == 0  # nothing left to move
 
 
+def test_a_textured_surfel_with_transparent_texels_is_dead_and_relocated():
+    """Dead or alive goes by the effective opacity: opacity x the most opaque texel's alpha. The relocation rescales
+    the scalar opacity and copies the source's texture."""
+    g = torch.Generator().manual_seed(0)
+    m = splatzoo.create_model("textured", torch.randn(40, 3, generator=g), torch.rand(40, 3, generator=g))
+    with torch.no_grad():
+        m.logit_opacity.fill_(2.0)  # opacity 0.88 everywhere
+        m.texture_alpha_logit.uniform_(-1, 3, generator=g)
+        m.texture_alpha_logit[:4] = -12.0  # alpha 6e-6 at every texel: draws nothing
+    effective = m.effective_opacity()
+    assert torch.allclose(effective, torch.sigmoid(m.logit_opacity)
+                          * torch.sigmoid(m.texture_alpha_logit).amax(dim=(1, 2, 3)))
+    opt = torch.optim.Adam(m.optim_groups(1.0), lr=1e-3)
+    before = {k: v.detach().clone() for k, v in m.per_primitive().items()}
+    assert relocate_dead(m, opt, torch.Generator().manual_seed(1)) == 4
+    assert bool((m.effective_opacity() > DEAD_OPACITY).all())
+    for i in range(4):  # a copy of a live source: its texture as it was, its opacity the relocation's (lower)
+        src = int(((before["means"] - m.means[i]).norm(dim=1) == 0).nonzero()[-1])
+        assert src >= 4
+        assert torch.equal(m.texture_alpha_logit[i], before["texture_alpha_logit"][src])
+        assert torch.equal(m.texture_rgb[i], before["texture_rgb"][src])
+        assert m.logit_opacity[i] == m.logit_opacity[src] < before["logit_opacity"][src]
+    assert relocate_dead(m, opt, torch.Generator().manual_seed(1)) == 0
+
+
 def test_added_surfels_share_their_sources_coverage():
     m = model_with_dead(dead=0)
     opt = torch.optim.Adam(m.optim_groups(1.0), lr=1e-3)

@@ -53,6 +53,9 @@ WAVE_L1_COUNT = 2000  # ... chosen with this many surfels (wave_l1_per_count sca
 PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
 MEASURED_PRUNINGS = 8  # prune_psnr: about this many measured prunings over the pruning period (and one at the end)
 BISECTION_STEPS = 7    # prune_psnr: the share of waves removed is found to 1/2^this of the active waves
+# frequencies stop where every rasterizer still agrees (types.MAX_WAVE_NUMBER radians per sigma), in cycles per sigma;
+# float's products may round up
+FREQ_LIMIT = MAX_WAVE_NUMBER / (2 * math.pi) * (1 - 1e-5)
 
 
 @dataclass
@@ -260,11 +263,40 @@ class GaborModel(SurfelModel):
             coeffs = torch.cat([self.sh_rest.new_zeros(self.sh_rest.shape[0], 1, 3), self.sh_rest], 1)
             base = base + eval_sh(self.config.sh_degree, coeffs, view_directions(self.means, camera))
         amplitudes = w[..., None] * self.half_difference()[:, None, :]
-        # frequencies stop where every rasterizer still agrees (types.MAX_WAVE_NUMBER radians per sigma)
-        limit = MAX_WAVE_NUMBER / (2 * math.pi) * (1 - 1e-5)  # float's products may round up
-        vectors = (2 * math.pi) * self.wave_freqs.clamp(-limit, limit)[..., None] * directions
+        vectors = (2 * math.pi) * self.wave_freqs.clamp(-FREQ_LIMIT, FREQ_LIMIT)[..., None] * directions
         return Surfels(g["means"], g["quats"], g["scales"], g["opacities"], base, vectors, self.phases(), amplitudes,
                        wave_counts=counts)
+
+    def split_children(self, rows: dict[str, torch.Tensor], offsets: torch.Tensor,
+                       shrink: float) -> dict[str, torch.Tensor]:
+        """Each child's waves in its own frame. At the child's (u', v') its parent's wave reads
+        cos(k.(offset + (u', v')/shrink) + phi) = cos((k/shrink).(u', v') + phi + k.offset): the child's frequencies
+        are the parent's / shrink and its phases phi + k.offset (wrapped to [-pi, pi)), with k the wave vector as
+        rendered (frequency clamped as in surfels()). Amplitudes, base colour and SH are constant over (u, v).
+
+        Without a learned phase (baseline C) the shift cannot be stored; each wave's weight becomes w cos(k.offset)
+        instead, the zero-phase wave closest to the shifted one over the child's Gaussian (least squares: the
+        projection of cos(x + c) on cos(x) under x = k'.(u', v'), (u', v') ~ N(0, I), is cos(c) exactly), which
+        also keeps the child's mean colour. In the paper's colours the weights scale the base colour as well: the
+        weight taken from a wave, w (1 - cos c), is folded into the base colour as removed waves are (half on cA,
+        half on cB) where the model keeps folded weights (adaptive waves); without them the weights stay and only
+        the frequencies follow (the pattern is then shifted by the child's offset)."""
+        rows = dict(rows)
+        freqs = rows["wave_freqs"].clamp(-FREQ_LIMIT, FREQ_LIMIT)  # [M,width]
+        directions = self.directions.to(freqs)
+        directions = directions[rows["wave_index"]] if self.adaptive else directions.expand(freqs.shape[0], -1, -1)
+        shift = 2 * math.pi * freqs * (directions * offsets.to(freqs)[:, None, :]).sum(-1)  # k.offset [M,width]
+        rows["wave_freqs"] = freqs / shrink
+        if self.learn_phase:
+            rows["wave_phases"] = torch.remainder(rows["wave_phases"] + shift + math.pi, 2 * math.pi) - math.pi
+            return rows
+        w, c = rows["wave_weights"], torch.cos(shift)
+        if self.residual:
+            rows["wave_weights"] = w * c
+        elif self.adaptive:
+            rows["wave_weights"] = w * c
+            rows["folded_weights"] = rows["folded_weights"] + (w * (1 - c)).sum(1, keepdim=True) / 2
+        return rows
 
     def optim_groups(self, scene_extent: float) -> list[dict]:
         if self.residual:

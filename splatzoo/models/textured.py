@@ -30,7 +30,8 @@ import torch
 from torch import nn
 
 from ..errors import ShapeError
-from ..types import Camera, Surfels
+from ..types import TEXTURE_RADIUS, Camera, Surfels
+from .base import inverse_sigmoid
 from .surfel2d import Surfel2DConfig, Surfel2DModel
 
 ALPHA_INIT_LOGIT = 4.6  # sigmoid: 0.990, the surfel nearly as its 2DGS self
@@ -47,6 +48,17 @@ class TexturedConfig(Surfel2DConfig):
         if not 1 <= int(self.texture_size) <= 16:
             raise ShapeError(f"texture_size must be an integer from 1 to 16, got {self.texture_size}")
         self.texture_size = int(self.texture_size)
+
+
+def sample_texture(texture: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """texture [M,T,T,4] sampled at (u, v) [P,M] (sigmas of each texture's surfel) -> [P,M,4], exactly as the
+    rasterizer samples it: the reference backend's own bilinear, edge-clamped sampling (unfiltered)."""
+    from types import SimpleNamespace
+
+    from ..rasterizers.reference import _texture_sample
+
+    batch = SimpleNamespace(texture=texture, texture_size=texture.shape[1])  # what _texture_sample reads of Surfels
+    return _texture_sample(batch, torch.arange(texture.shape[0], device=texture.device), u, v)
 
 
 class TexturedModel(Surfel2DModel):
@@ -75,15 +87,40 @@ class TexturedModel(Surfel2DModel):
             {"name": "texture_rgb", "params": [self.texture_rgb], "lr": TEXTURE_RGB_LR},
             {"name": "texture_alpha_logit", "params": [self.texture_alpha_logit], "lr": TEXTURE_ALPHA_LR}]
 
+    def effective_opacity(self) -> torch.Tensor:
+        """[N] the most a surfel's texture can let through: its opacity times its most opaque texel's alpha (the
+        bilinear samples, and the anti-aliased prefilter's, stay within the texels' range)."""
+        return torch.sigmoid(self.logit_opacity) * torch.sigmoid(self.texture_alpha_logit).flatten(1).amax(1)
+
+    def split_children(self, rows: dict[str, torch.Tensor], offsets: torch.Tensor,
+                       shrink: float) -> dict[str, torch.Tensor]:
+        """Each child's texture resampled from its parent's: the child's texel (r, c), centred at
+        (u', v') = -R + (c + 1/2, r + 1/2) 2R/T, takes the parent's RGBA as the rasterizer samples it (bilinear, edge
+        clamped) at the parent's (u, v) = offset + (u', v') / shrink. Alpha is interpolated as alpha, as the
+        rasterizer does, and turned back into a logit clamped to alpha in [1e-6, 1 - 1e-6] (inverse_sigmoid), so
+        the logits stay finite."""
+        rows = dict(rows)
+        rgb, logit = rows["texture_rgb"], rows["texture_alpha_logit"]
+        m, size = rgb.shape[0], rgb.shape[1]
+        centres = -TEXTURE_RADIUS + (torch.arange(size, dtype=rgb.dtype, device=rgb.device) + 0.5) * (
+            2 * TEXTURE_RADIUS / size)
+        v, u = torch.meshgrid(centres, centres, indexing="ij")  # [T,T]: texel (r, c) at (centres[c], centres[r])
+        offsets = offsets.to(rgb)
+        pu = offsets[:, 0, None] + u.reshape(1, -1) / shrink  # [M,T*T] in the parent's sigmas
+        pv = offsets[:, 1, None] + v.reshape(1, -1) / shrink
+        sampled = sample_texture(torch.cat([rgb, torch.sigmoid(logit)], -1), pu.T, pv.T)  # [T*T,M,4]
+        sampled = sampled.transpose(0, 1).reshape(m, size, size, 4)
+        rows["texture_rgb"] = sampled[..., :3]
+        rows["texture_alpha_logit"] = inverse_sigmoid(sampled[..., 3:])
+        return rows
+
     def draws_nothing(self) -> str | None:
         from ..rasterizers.common import SETTINGS
 
         why = super().draws_nothing()
         n = self.texture_alpha_logit.shape[0]
         if why is None and n:
-            # the most a surfel's texture can let through: its opacity times its most opaque texel
-            peak = torch.sigmoid(self.logit_opacity.detach()) * torch.sigmoid(
-                self.texture_alpha_logit.detach()).flatten(1).max(1).values
+            peak = self.effective_opacity().detach()
             if float(peak.max()) < SETTINGS.alpha_min:
                 why = (f"texture_alpha_logit: every one of the {n} surfels has opacity x texture alpha below 1/255 at "
                        "all its texels, which the rasterizer skips: the model draws nothing and cannot learn (the run "

@@ -13,6 +13,11 @@ integral over the surfel plane equals the source's, o 2 pi s^2, when
 2 pi s'^2 / (k+1); the inner binomial sum is the integral from 0 to o' of (1 - t)^(i-1)). n = 1 leaves o and s as
 they were. Sources are drawn with probability proportional to opacity, and nearly dead surfels get positional noise
 along their own plane (a random walk that explores without moving what the images pin down).
+
+"Opacity" in deciding who is dead, who is drawn and who gets noise is the model's effective_opacity(): the most
+opacity a surfel can show anywhere (a textured surfel's times its most opaque texel), so a surfel whose texture has
+turned transparent is dead however opaque its scalar. A relocation still rescales the scalar opacity only (whatever
+else scales it, such as a texture's alpha, is copied from the source as it is).
 """
 from __future__ import annotations
 
@@ -67,7 +72,7 @@ def _apply_relocation(model: SurfelModel, sources: torch.Tensor, count_extra: to
 @torch.no_grad()
 def relocate_dead(model: SurfelModel, optimizer, generator: torch.Generator) -> int:
     """Move every dead surfel onto a live one (drawn by opacity); returns how many moved."""
-    opacity = torch.sigmoid(model.logit_opacity)
+    opacity = model.effective_opacity()
     dead = opacity <= DEAD_OPACITY
     alive = (~dead).nonzero().squeeze(1)
     n_dead = int(dead.sum())
@@ -91,7 +96,7 @@ def add_surfels(model: SurfelModel, optimizer, count: int, generator: torch.Gene
     """Append `count` copies of live surfels (drawn by opacity), relocated as above; returns how many."""
     from .densify import _edit_primitives
 
-    opacity = torch.sigmoid(model.logit_opacity)
+    opacity = model.effective_opacity()
     alive = (opacity > DEAD_OPACITY).nonzero().squeeze(1)
     if count <= 0 or alive.numel() == 0:
         return 0
@@ -111,7 +116,7 @@ def inject_noise(model: SurfelModel, position_lr: float, generator: torch.Genera
     """Move nearly dead surfels at random along their own plane: noise ~ N(0, tangent covariance) scaled by
     NOISE_LR x the position learning rate, gated by a steep sigmoid of 1 - opacity (live surfels keep still)."""
     means = model.means
-    opacity = torch.sigmoid(model.logit_opacity)
+    opacity = model.effective_opacity()
     gate = torch.sigmoid(100 * ((1 - opacity) - 0.995))
     R = quat_to_rotmat(model.quats)
     scales = torch.exp(model.log_scales)
