@@ -295,9 +295,12 @@ def train_command(
     background: Optional[str] = _BACKGROUND,
     white_background: bool = _WHITE,
     densify: bool = typer.Option(True, "--densify/--no-densify", help="densification (off: a fixed count)"),
-    strategy: str = typer.Option("adc", "--strategy", help="adc: 2DGS's adaptive density control (clone, split, "
-                                 "prune, opacity resets); mcmc: grow 5% a step to the budget, then relocate dead "
-                                 "surfels onto live ones"),
+    strategy: str = typer.Option("auto", "--strategy", help="auto (default): the model's own choice (frequency for "
+                                 "neural-gabor, adc for the others); adc: 2DGS's adaptive density control (clone, "
+                                 "split, prune, opacity resets); mcmc: grow 5% a step to the budget, then relocate "
+                                 "dead surfels onto live ones; frequency: Neural Gabor splatting's, grow where the "
+                                 "render's frequency bands differ from the photos', opacities decay instead of "
+                                 "resets"),
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n",
                                                  help="start from exactly N primitives (subsampled initial points)"),
     max_primitives: Optional[int] = typer.Option(None, "--max-primitives", help="cap densification at N primitives "

@@ -16,7 +16,7 @@ from ..errors import SplatzooError
 from ..evaluate import area_resize
 from ..types import Camera, RenderOutput
 from ..zoo import create_model, model_from_checkpoint
-from . import mcmc
+from . import frequency, mcmc
 from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .distributed import Comm
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
@@ -24,7 +24,7 @@ from .losses import distortion_loss, normal_consistency_loss, photometric_loss
 REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many iterations and scaled to the run
 PIXELS_PER_SURFEL = 128       # default densification budget: one surfel per this many training pixels
 MAX_GROWTH = 0.5              # one densification step adds at most this fraction of the current count
-STRATEGIES = ("adc", "mcmc")   # densification strategies (TrainConfig.strategy)
+STRATEGIES = ("adc", "mcmc", "frequency")  # densification strategies (TrainConfig.strategy; "auto": the model's)
 ERROR_AVERAGE = 0.01          # the model's recent_error: an exponential average over about 1/this many steps
 DOWNSCALES = (0.5, 0.25)      # the smaller scales --random-downscale trains at ...
 MIN_DOWNSCALED_SIDE = 64      # ... where the view's shorter side stays at least this many pixels
@@ -90,9 +90,14 @@ class TrainConfig:
     backend: str = field(default="auto", metadata={"operational": True})
     seed: int = 0
     densify: bool = True
-    strategy: str = field(default="adc", metadata={
-        "help": "how densification grows the count: adc (2DGS's adaptive density control: clone, split, prune, "
-                "opacity resets) or mcmc (grow by 5% a step to the budget, then move dead surfels onto live ones)"})
+    strategy: str = field(default="auto", metadata={
+        "help": "how densification grows the count: auto (the model's own choice: frequency for neural-gabor, adc "
+                "for the others), adc (2DGS's adaptive density control: clone, split, prune, opacity resets), mcmc "
+                "(grow by 5% a step to the budget, then move dead surfels onto live ones) or frequency (Neural "
+                "Gabor splatting's: grow where the render's frequency bands differ from the photos')"})
+    densify_views: int = field(default=frequency.VIEWS, metadata={
+        "help": "training views rendered per densification step of --strategy frequency (all of them when there "
+                "are fewer)"})
     num_primitives: int | None = field(default=None, metadata={"help": "start from exactly this many primitives"})
     max_primitives: int | None = field(default=None, metadata={
         "help": "cap on the count densification reaches (default: one surfel per 128 training pixels, at least "
@@ -139,9 +144,10 @@ class TrainConfig:
         if self.random_downscale > 1:
             raise SplatzooError(f"--random-downscale is a fraction of the training views, 0 to 1; got "
                                 f"{self.random_downscale}")
-        if self.strategy not in STRATEGIES:
-            raise SplatzooError(f"--strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
-        for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every", "batch_size", "nproc"):
+        if self.strategy not in ("auto",) + STRATEGIES:
+            raise SplatzooError(f"--strategy must be one of auto, {', '.join(STRATEGIES)}, got {self.strategy!r}")
+        for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every", "batch_size", "nproc",
+                     "densify_views"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise SplatzooError(f"training option {name} must be at least 1, got {getattr(self, name)}")
         if not 0 <= self.seed <= MAX_SEED:
@@ -164,6 +170,17 @@ class TrainConfig:
     @property
     def eval_interval(self) -> int:
         return self.eval_every or max(1, self.iterations // 10)
+
+
+def resolve_strategy(strategy: str, model) -> str:
+    """The densification strategy a run uses: `strategy`, or for "auto" the model's own (its densify_strategy)."""
+    if strategy != "auto":
+        return strategy
+    chosen = getattr(model, "densify_strategy", "adc")
+    if chosen not in STRATEGIES:
+        raise SplatzooError(f"model {getattr(model, 'name', '') or type(model).__name__} asks for the densification "
+                            f"strategy {chosen!r}, which is none of {', '.join(STRATEGIES)}; pass --strategy")
+    return chosen
 
 
 def select_initial_points(points: torch.Tensor, colors: torch.Tensor, n: int | None, seed: int):
@@ -281,6 +298,7 @@ class Trainer:
         self.scene, self.cfg, self.backend, self.device = scene, cfg, backend, device
         self.comm = comm or Comm()
         self.net = net.to(device)
+        self.strategy = resolve_strategy(cfg.strategy, self.net)
         # larger batches: learning rates x sqrt(views per step), Adam's betas to the power of it (the rule
         # Grendel-GS reports for Gaussian splatting; one view per step leaves the 2DGS recipe unchanged)
         g = cfg.views_per_step
@@ -299,8 +317,8 @@ class Trainer:
             self.optimizer.load_state_dict(state["optimizer"])
             check_optimizer_state(self.optimizer, int(state["iteration"]))
             self.stats.load_state_dict(state["densify"])
-            # MCMC never reads them (nor resizes them when it grows the model)
-            check_densify_state(self.stats, None if cfg.strategy == "mcmc" else self.net.num_primitives)
+            # only adc reads them (the other strategies do not resize them when they edit the model)
+            check_densify_state(self.stats, None if self.strategy != "adc" else self.net.num_primitives)
             if self.comm.rank != 0:  # the checkpoint holds the sums over all ranks; rank 0 carries them on
                 self.stats.grad_sum.zero_()
                 self.stats.count.zero_()
@@ -316,7 +334,8 @@ class Trainer:
             tuple(float(c) for c in scene.background)
         self.view_index = {id(v): i for i, v in enumerate(scene.train)}
         self.densify_on = cfg.densify and hasattr(self.net, "logit_opacity")
-        self.mcmc = self.densify_on and cfg.strategy == "mcmc"
+        self.mcmc = self.densify_on and self.strategy == "mcmc"
+        self.frequency = self.densify_on and self.strategy == "frequency"
         self.d_from, self.d_until = cfg.at(cfg.densify_from), cfg.at(cfg.densify_until)
         # a short run keeps the 30k schedule's windows: densification decides on at least densify_interval
         # iterations of gradient statistics, and opacity resets come no closer than opacity_reset_interval / 3
@@ -461,6 +480,19 @@ class Trainer:
         lr = next(g["lr"] for g in self.optimizer.param_groups if g.get("name") == "means")
         mcmc.inject_noise(net, lr, self.gen)
 
+    def _frequency_step(self) -> dict:
+        """--strategy frequency: one frequency-aware densification step (training/frequency.py) on densify_views
+        training views drawn at random, each rendered at full size over the run's background."""
+        cfg, net, train = self.cfg, self.net, self.scene.train
+        if net.num_primitives >= self.budget:
+            return {}
+        picks = torch.randperm(len(train), generator=self.gen)[:min(cfg.densify_views, len(train))].tolist()
+        views = ((train[i].camera.to(self.device, torch.float32),
+                  train[i].image_float(background=self.background.cpu()).to(self.device)) for i in picks)
+        return frequency.densify_step(net, self.optimizer, views, scene_extent=self.scene.extent, budget=self.budget,
+                                      generator=self.gen, min_opacity=cfg.min_opacity, background=self.background,
+                                      backend=self.backend, comm=self.comm)
+
     def step(self) -> dict:
         """One iteration; returns {"loss", "photo"} and, on logging iterations, the log records to write (rank 0)."""
         cfg, net, optimizer, scene, comm = self.cfg, self.net, self.optimizer, self.scene, self.comm
@@ -475,7 +507,7 @@ class Trainer:
         for g in optimizer.param_groups:
             if g.get("name") == "means":
                 g["lr"] = _position_lr(cfg, step, scene.extent) * self.lr_scale
-        track = self.densify_on and not self.mcmc and step <= self.d_until
+        track = self.densify_on and self.strategy == "adc" and step <= self.d_until
         loss, l_photo, render, target, error = self._backward(mine, step, track)
         # one read of the step's numbers (each read makes a GPU wait), and the divergence check on it
         loss_value, photo_value, error = torch.stack([loss.detach(), l_photo.detach(), error.detach()]).tolist()
@@ -487,6 +519,9 @@ class Trainer:
         optimizer.step()
         if self.mcmc:
             self._mcmc_step(step)
+        elif self.frequency:  # its own opacity decay stands in for the resets
+            if self.d_from < step <= self.d_until and step % self.d_every == 0:
+                self._frequency_step()
         elif self.densify_on and self.d_from < step <= self.d_until:
             if step % self.d_every == 0:
                 if comm.world > 1:  # every rank decides from the statistics of all views
