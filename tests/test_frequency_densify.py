@@ -186,3 +186,14 @@ def test_auto_takes_the_models_strategy(tiny_scene):
         resolve_strategy("auto", m)
     with pytest.raises(SplatzooError, match="densify_views"):
         TrainConfig(densify_views=0).validate()
+
+
+def test_the_separable_box_mean_is_the_window_mean():
+    import torch.nn.functional as F
+
+    from splatzoo.training.frequency import _box
+
+    x = torch.rand(2, 3, 37, 53, generator=torch.Generator().manual_seed(4))
+    for k in (3, 17):
+        want = F.avg_pool2d(x, k, stride=1, padding=k // 2, count_include_pad=False)
+        assert torch.allclose(_box(x, k), want, atol=1e-6)

@@ -56,8 +56,10 @@ def fast_length(n: int) -> int:
 
 
 def _box(x: torch.Tensor, k: int) -> torch.Tensor:
-    """Mean of x [B,C,H,W] over a k x k window around each pixel, over the window's part inside the image."""
-    return F.avg_pool2d(x, k, stride=1, padding=k // 2, count_include_pad=False)
+    """Mean of x [B,C,H,W] over a k x k window around each pixel, over the window's part inside the image (a
+    rectangle: a mean along columns of means along rows, 2k reads a pixel instead of k^2)."""
+    x = F.avg_pool2d(x, (1, k), stride=1, padding=(0, k // 2), count_include_pad=False)
+    return F.avg_pool2d(x, (k, 1), stride=1, padding=(k // 2, 0), count_include_pad=False)
 
 
 def band_masks(height: int, width: int, bands=BANDS, device=None) -> torch.Tensor:
