@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from ..errors import ShapeError
+from ..rasterizers.reference import sample_texture
 from ..types import TEXTURE_RADIUS, Camera, Surfels
 from .base import inverse_sigmoid
 from .surfel2d import Surfel2DConfig, Surfel2DModel
@@ -48,17 +49,6 @@ class TexturedConfig(Surfel2DConfig):
         if not 1 <= int(self.texture_size) <= 16:
             raise ShapeError(f"texture_size must be an integer from 1 to 16, got {self.texture_size}")
         self.texture_size = int(self.texture_size)
-
-
-def sample_texture(texture: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """texture [M,T,T,4] sampled at (u, v) [P,M] (sigmas of each texture's surfel) -> [P,M,4], exactly as the
-    rasterizer samples it: the reference backend's own bilinear, edge-clamped sampling (unfiltered)."""
-    from types import SimpleNamespace
-
-    from ..rasterizers.reference import _texture_sample
-
-    batch = SimpleNamespace(texture=texture, texture_size=texture.shape[1])  # what _texture_sample reads of Surfels
-    return _texture_sample(batch, torch.arange(texture.shape[0], device=texture.device), u, v)
 
 
 class TexturedModel(Surfel2DModel):

@@ -265,15 +265,21 @@ def prefilter_texture(texture, blur):
 
 def _texture_sample(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None):
     """The texture's bilinear RGBA at (u, v) for every pair -> [P,n,4], or None without a texture (T = 0).
-
-    Texel (r, c) of texture [n,T,T,4] is centred at (u, v) = -R + (c + 1/2, r + 1/2) 2R/T, R = TEXTURE_RADIUS;
-    outside the centres the edge texels extend (clamp to edge). Anti-aliased (blur given), the prefiltered texture."""
-    size = s.texture_size
-    if size == 0:
+    Anti-aliased (blur given), the prefiltered texture."""
+    if s.texture_size == 0:
         return None
     tex = s.texture[idx]
     if blur is not None:
         tex = prefilter_texture(tex, blur)
+    return sample_texture(tex, u, v)
+
+
+def sample_texture(tex: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Textures [n,T,T,C] sampled bilinearly at (u, v) [P,n] (each texture's surfel's sigmas) -> [P,n,C].
+
+    Texel (r, c) is centred at (u, v) = -R + (c + 1/2, r + 1/2) 2R/T, R = TEXTURE_RADIUS; outside the centres the edge
+    texels extend (clamp to edge)."""
+    size, channels = tex.shape[1], tex.shape[-1]
     scale = size / (2 * TEXTURE_RADIUS)
 
     def axis(x):
@@ -283,11 +289,11 @@ def _texture_sample(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Ten
 
     fu, iu0, iu1 = axis(u)
     fv, iv0, iv1 = axis(v)
-    flat = tex.reshape(tex.shape[0], size * size, 4)
+    flat = tex.reshape(tex.shape[0], size * size, channels)
     n = torch.arange(tex.shape[0], device=tex.device)[None, :]
 
     def texel(iv, iu):
-        return flat[n, iv * size + iu]  # [P,n,4]
+        return flat[n, iv * size + iu]  # [P,n,C]
 
     fu, fv = fu[..., None], fv[..., None]
     t00, t01, t10, t11 = texel(iv0, iu0), texel(iv0, iu1), texel(iv1, iu0), texel(iv1, iu1)
