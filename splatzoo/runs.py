@@ -175,15 +175,31 @@ def differences(recorded: dict, wanted: dict) -> list[str]:
     if "model" in wanted and wanted["model"] != recorded.get("model"):
         out.append(f"model: run has {recorded.get('model')!r}, asked {wanted['model']!r}")
     operational = TrainConfig.operational_fields()
+    train_defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)
+                      if f.default is not dataclasses.MISSING}
+    model = wanted.get("model", recorded.get("model"))
     for section in ("model_config", "train", "scene_options"):
         for key, value in _plain(wanted.get(section, {})).items():
             if section == "train" and key in operational:
                 continue
-            have = recorded.get(section, {}).get(key, SCENE_OPTION_DEFAULTS.get(key) if section == "scene_options"
-                                                 else None)
+            # a field the run's record lacks was added since: the run was made with what its default means
+            default = {"scene_options": SCENE_OPTION_DEFAULTS, "train": train_defaults}.get(section, {}).get(key)
+            have = recorded.get(section, {}).get(key, default)
+            if section == "train" and key == "strategy":  # "auto" is the model's own: compare what ran
+                have, value = _strategy_of(have, model), _strategy_of(value, model)
             if have != value:
                 out.append(f"{key}: run has {have!r}, asked {value!r}")
     return out
+
+
+def _strategy_of(strategy, model: str | None):
+    """The densification strategy `strategy` stands for with model `model` ("auto": the model's own)."""
+    if strategy != "auto" or model is None:
+        return strategy
+    from .registry import MODELS
+
+    spec = MODELS.get(model) if model in MODELS.names() else None
+    return getattr(spec.cls, "densify_strategy", "adc") if spec is not None else strategy
 
 
 # --- the run folder ---------------------------------------------------------------------------------------------

@@ -480,3 +480,22 @@ def test_hand_edited_config_and_meta_tensors_are_named(tiny_data, tmp_path):
     torch.save(state, tmp_path / "meta.pt")
     with pytest.raises(SplatzooError, match="state entry 'means' holds no data"):
         load_model(tmp_path / "meta.pt")
+
+
+def test_a_run_recorded_before_a_training_field_existed_is_reused():
+    """A record without a field added since (densify_views) and with the strategy "auto" stands for ("adc" for 2dgs)
+    asks for nothing new; the same record for a model whose own strategy differs does."""
+    import dataclasses
+
+    from splatzoo.runs import differences
+    from splatzoo.training import TrainConfig
+
+    wanted_train = dataclasses.asdict(TrainConfig(iterations=10))
+    old_train = {k: v for k, v in wanted_train.items() if k != "densify_views"}
+    old_train["strategy"] = "adc"
+    assert differences({"model": "2dgs", "train": old_train}, {"model": "2dgs", "train": wanted_train}) == []
+    changed = differences({"model": "neural-gabor", "train": old_train},
+                          {"model": "neural-gabor", "train": wanted_train})
+    assert changed == ["strategy: run has 'adc', asked 'frequency'"]
+    assert differences({"model": "2dgs", "train": {**old_train, "densify_views": 3}},
+                       {"model": "2dgs", "train": wanted_train}) == ["densify_views: run has 3, asked 20"]
