@@ -135,9 +135,9 @@ def test_a_step_splits_large_ones_decays_opacity_and_prunes(monkeypatch):
     o = torch.sigmoid(m.logit_opacity.detach())
     survivors = (before - 0.001 >= 0.3) & (torch.arange(100) != 10) & (torch.arange(100) != 50)
     assert out["split"] == 2 and out["cloned"] == 0
-    # children of opacity 1 - sqrt(1 - o) - 0.001: those of the parent at 0.8 survive, those at 0.46 do not
-    children = stacked_opacity(before[[10, 50]]) - 0.001
-    kept = children[children >= 0.3]
+    # children of opacity 1 - sqrt(1 - o) - 0.001 all survive the step that made them, even under min_opacity
+    kept = stacked_opacity(before[[10, 50]]) - 0.001
+    assert bool((kept < 0.3).any())  # one pair is below it
     assert out["primitives"] == int(survivors.sum()) + 2 * kept.numel()
     assert torch.allclose(o[:int(survivors.sum())], before[survivors] - 0.001, atol=1e-6)
     assert torch.allclose(o[int(survivors.sum()):], kept.repeat(2), atol=1e-6)
@@ -154,10 +154,8 @@ def tiny_scene(tmp_path_factory):
 
 
 def test_training_with_frequency_grows_stays_finite_and_resumes_exactly(tiny_scene, tmp_path):
-    # min_opacity under half the start's 0.1: a clone pair of 1 - sqrt(1 - 0.1) = 0.051 each is not pruned at once
     cfg = TrainConfig(iterations=30, num_primitives=80, max_primitives=200, strategy="frequency", densify_from=0,
-                      densify_interval=5, densify_views=3, log_every=5, backend="cpu", checkpoint_minutes=0,
-                      min_opacity=0.02)
+                      densify_interval=5, densify_views=3, log_every=5, backend="cpu", checkpoint_minutes=0)
     full = train(tiny_scene, "2dgs", {}, cfg, tmp_path / "full", progress=False, evaluate_at_end=False)
     log = [json.loads(x) for x in (tmp_path / "full" / "train_log.jsonl").read_text().splitlines()]
     counts = [r["num_primitives"] for r in log if "num_primitives" in r]

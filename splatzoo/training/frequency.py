@@ -224,7 +224,10 @@ def densify_step(model: SurfelModel, optimizer: torch.optim.Optimizer, views: It
 
     model.logit_opacity[:], keep = decayed(params["logit_opacity"])
     new["logit_opacity"], keep_new = decayed(new["logit_opacity"])
-    keep &= ~split
+    # what this step chose to grow is not pruned by it: halving a faint surfel's opacity may take both copies under
+    # min_opacity, which would delete the very surfels the images asked for (they fade later if unneeded)
+    keep = (keep | clone) & ~split
+    keep_new = torch.ones_like(keep_new)
     if not keep.any() and not keep_new.any():  # never prune everything: an empty model cannot recover
         keep, keep_new = ~split, torch.ones_like(keep_new)
     _edit_primitives(model, optimizer, keep, {k: v[keep_new] for k, v in new.items()})
