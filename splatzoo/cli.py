@@ -267,9 +267,9 @@ def _model_file(run: Path, data: Optional[Path]) -> bool:
     return False
 
 
-_TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "num_primitives", "max_primitives",
-                 "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size", "nproc", "antialias",
-                 "random_downscale")
+_TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "densify_views", "num_primitives",
+                 "max_primitives", "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size",
+                 "nproc", "antialias", "random_downscale")
 
 
 def _given(ctx: typer.Context) -> set[str]:
@@ -301,6 +301,8 @@ def train_command(
                                  "dead surfels onto live ones; frequency: Neural Gabor splatting's, grow where the "
                                  "render's frequency bands differ from the photos', opacities decay instead of "
                                  "resets"),
+    densify_views: int = typer.Option(20, "--densify-views", help="--strategy frequency: training views rendered "
+                                      "at each densification step (all of them when there are fewer)"),
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n",
                                                  help="start from exactly N primitives (subsampled initial points)"),
     max_primitives: Optional[int] = typer.Option(None, "--max-primitives", help="cap densification at N primitives "
