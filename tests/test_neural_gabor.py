@@ -40,7 +40,7 @@ def _pixel_uv(camera: Camera, mean, scale) -> torch.Tensor:
 def test_rendered_colour_is_the_network_at_the_hit(backend):
     """One opaque surfel facing the camera: each pixel's colour over black, divided by its alpha, is the network
     evaluated as written at the pixel ray's hit (u, v) and the view direction."""
-    model = _model(seed=3).double()
+    model = _model(seed=3, view_dependent=True).double()
     model.antialias = False
     with torch.no_grad():
         model.means.zero_()
@@ -60,7 +60,7 @@ def test_rendered_colour_is_the_network_at_the_hit(backend):
 
 
 def test_view_direction_moves_the_phases_only():
-    model = _model(n=4, seed=1)
+    model = _model(n=4, seed=1, view_dependent=True)
     a = Camera.look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0], dtype=torch.float32)
     b = Camera.look_at([2.0, 0.5, -2.0], [0.0, 0.0, 0.0], dtype=torch.float32)
     sa, sb = model.surfels(a), model.surfels(b)
@@ -71,7 +71,7 @@ def test_view_direction_moves_the_phases_only():
 
 
 def test_every_network_parameter_learns():
-    model = _model(n=20, seed=2)
+    model = _model(n=20, seed=2, view_dependent=True)
     model.antialias = True
     cam = Camera.look_at([0.0, 0.0, -2.0], [0.0, 0.0, 0.0], width=32, height=32, dtype=torch.float32)
     model.render(cam, backend="cpu").rgb.square().sum().backward()
@@ -98,9 +98,6 @@ def test_split_children_show_their_parents_pattern():
     R = quat_to_rotmat(params["quats"][idx])
     offsets = ((children["means"] - params["means"][idx])[:, None, :] @ R[:, :, :2]).squeeze(1) / parent_scale
     uv = torch.randn(6, 9, 2, generator=torch.Generator().manual_seed(1))
-    # the view direction is the child's own (its centre moved); compare with view input off to isolate (u, v)
-    for m in (model, child):
-        m.config.view_dependent = False
     with torch.no_grad():
         got = child.network_color(uv, cam)
         parent = _model(n=6, seed=4, view_dependent=False)
@@ -110,11 +107,12 @@ def test_split_children_show_their_parents_pattern():
 
 
 def test_size_and_options():
-    model = _model(n=10)
+    model = _model(n=10, view_dependent=True)
     assert model.size_bytes() == 10 * (3 + 2 + 4 + 1 + 6 * 5 + 6 + 6 * 3 + 3) * 4  # 57 network numbers at H = 6
+    assert _model(n=10).size_bytes() == 10 * (10 + 6 * 2 + 6 + 6 * 3 + 3) * 4  # no view weights stored
     assert model.densify_strategy == "frequency"
     with pytest.raises(ShapeError, match="hidden"):
         _model(hidden=0)
     with pytest.raises(ShapeError, match="omega"):
         _model(omega=-1.0)
-    assert _model(hidden=3).net_w1.shape == (1, 3, 5)
+    assert _model(hidden=3).net_w1.shape == (1, 3, 2)

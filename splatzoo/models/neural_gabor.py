@@ -3,7 +3,8 @@
 Neural Gabor splatting (Watanabe and Umetani, "Neural Gabor Splatting: Enhanced Gaussian Splatting with Neural Gabor
 for High-frequency Surface Reconstruction", CVPR 2026; public code haato-w/neural-gabor-splatting, on 2DGS) gives
 every surfel a one-hidden-layer SIREN: inputs x = (u, v, d), the point's coordinates on the surfel and the view
-direction, H = 6 hidden units with a sine activation, 3 outputs; 57 numbers per surfel at H = 6. Here:
+direction, H = 6 hidden units with a sine activation, 3 outputs; 57 numbers per surfel at H = 6 (39 without the view
+input, which stores no weights for it). Here:
 
     h_j = sin(omega (w1_j . x + b1_j)),   c(u, v) = max(0, b2 + sum_j w2_j h_j),
 
@@ -16,10 +17,17 @@ k_j = omega w1_j[u, v], phi_j = omega (w1_j[d] . d + b1_j) - pi/2, a_j = w2_j ov
 input shifts the wave's phase (and only the phase) from view to view. So the network runs in every rasterizer
 through the wave kind (csrc/surfel_math.h): exact, differentiable through the same kernels, anti-aliased by the same
 footprint gain (a wave's amplitude fades by exp(-k^T b k / 2) under the pixel footprint's blur b), exportable and
-bakeable as waves. What the release's rasterizer does beyond the formula above (its output activation, omega) is not
-in its public repository; the choices here are splatzoo's and are measured in BENCHMARKS.md.
+bakeable as waves. Without the view input it is a bank of H waves with free directions (gabor fans them at fixed
+angles). What the release's rasterizer does beyond the formula above (its output activation, omega) is not in its
+public repository; the choices here are splatzoo's, measured on the built-in scenes (BENCHMARKS.md, "neural-gabor"):
+- omega = OMEGA: SIREN's usual 30 starts patterns far finer than a surfel can fit here, (u, v) being in sigmas over
+  [-3, 3] (with the view input, 30 gave 20.9 dB on the quick sweater where 3 gave 24.7); without it 2, 3, 4, 6 and 8
+  gave 24.9, 25.4, 25.9, 26.1 and 26.2 dB;
+- the view input is off by default (`view_dependent`): a phase that moves with the view is not how colour changes
+  with the view (it lost 0.6-0.8 dB on both the quick sweater and its specular twin at 21 training views, as if it
+  fitted each view's phase on its own); `--view-dependent` gives the paper's network.
 
-Start (the release's SIREN initialisation, with our colour start): w1, b1 ~ U(-1/5, 1/5) (5 inputs), w2 ~
+Start (the release's SIREN initialisation, with our colour start): w1, b1 ~ U(-1/5, 1/5) (its 5 inputs), w2 ~
 INIT_AMPLITUDE U(-1, 1) (the release draws the whole SIREN range, U(-sqrt(6/5), sqrt(6/5)), with random b2; a small
 residual around the point colour keeps the start where a 2DGS surfel's is), b2 the point colour. Learning rates: the
 release's 2.5e-3 for every network parameter. Densification: the release's frequency-aware densification (`--strategy
@@ -38,19 +46,21 @@ from ..errors import ShapeError
 from ..types import MAX_WAVE_NUMBER, Camera, Surfels
 from .base import SurfelModel, view_directions
 
-INPUTS = 5               # u, v, and the view direction's three components
+INIT_BOUND = 1 / 5       # w1, b1 ~ U(-INIT_BOUND, INIT_BOUND): SIREN's first layer, 1 / its 5 inputs
 INIT_AMPLITUDE = 0.05    # w2 ~ this x U(-1, 1) at the start: the point colour plus a faint pattern
 NETWORK_LR = 2.5e-3      # the release's rate for every network parameter
+OMEGA = 8.0              # the first layer's frequency factor (module docstring)
 
 
 @dataclass
 class NeuralGaborConfig:
     hidden: int = field(default=6, metadata={"help": "hidden units of each surfel's network (the paper: 6)"})
-    omega: float = field(default=30.0, metadata={
+    omega: float = field(default=OMEGA, metadata={
         "help": "SIREN's frequency factor on the first layer: a hidden unit's wave vector is omega x its (u, v) "
                 "weights, in radians per sigma (larger: finer patterns within reach at the start, and faster)"})
-    view_dependent: bool = field(default=True, metadata={
-        "help": "feed the view direction to the network (the paper); off: colour depends on (u, v) only"})
+    view_dependent: bool = field(default=False, metadata={
+        "help": "feed the view direction to the network (the paper's network; measured worse on the built-in scenes, "
+                "see BENCHMARKS.md); off: colour depends on (u, v) only"})
 
     def __post_init__(self):
         if not 1 <= int(self.hidden) <= 32:
@@ -66,17 +76,17 @@ class NeuralGaborModel(SurfelModel):
     def __init__(self, config: NeuralGaborConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
         n, h = num_primitives, config.hidden
-        self.net_w1 = nn.Parameter(torch.zeros(n, h, INPUTS))  # per hidden unit: weights on u, v, d_x, d_y, d_z
+        inputs = 5 if config.view_dependent else 2
+        self.net_w1 = nn.Parameter(torch.zeros(n, h, inputs))  # per hidden unit: weights on u, v (, d_x, d_y, d_z)
         self.net_b1 = nn.Parameter(torch.zeros(n, h))
         self.net_w2 = nn.Parameter(torch.zeros(n, h, 3))       # per hidden unit: its colour (the output layer)
         self.net_b2 = nn.Parameter(torch.zeros(n, 3))          # the output bias: the surfel's base colour
 
     def init_from_points(self, points, colors, generator):
         self.init_geometry(points, generator)
-        n, h = self.net_b1.shape
-        bound = 1.0 / INPUTS
-        self.net_w1.copy_(bound * (2 * torch.rand(n, h, INPUTS, generator=generator) - 1))
-        self.net_b1.copy_(bound * (2 * torch.rand(n, h, generator=generator) - 1))
+        n, h, inputs = self.net_w1.shape
+        self.net_w1.copy_(INIT_BOUND * (2 * torch.rand(n, h, inputs, generator=generator) - 1))
+        self.net_b1.copy_(INIT_BOUND * (2 * torch.rand(n, h, generator=generator) - 1))
         self.net_w2.copy_(INIT_AMPLITUDE * (2 * torch.rand(n, h, 3, generator=generator) - 1))
         self.net_b2.copy_(colors)
 
