@@ -30,7 +30,9 @@ public repository; the choices here are splatzoo's, measured on the built-in sce
 Start (the release's SIREN initialisation, with our colour start): w1, b1 ~ U(-1/5, 1/5) (its 5 inputs), w2 ~
 INIT_AMPLITUDE U(-1, 1) (the release draws the whole SIREN range, U(-sqrt(6/5), sqrt(6/5)), with random b2; a small
 residual around the point colour keeps the start where a 2DGS surfel's is), b2 the point colour. Learning rates: the
-release's 2.5e-3 for every network parameter. Densification: the release's frequency-aware densification (`--strategy
+release's 2.5e-3 for w1, b1, w2; 2DGS's colour pace for b2 (gabor's base colour's). As gabor's waves, the hidden
+units' colours w2 carry a small L1 penalty (`amplitude_l1`, gabor's `wave_l1`), so units the images do not ask for
+fade and plain colour renders as 2DGS renders it. Densification: the release's frequency-aware densification (`--strategy
 auto` picks "frequency" for this model; splatzoo/training/frequency.py) with a hard cap on the count (the trainer's
 budget).
 """
@@ -45,6 +47,7 @@ from torch import nn
 from ..errors import ShapeError
 from ..types import MAX_WAVE_NUMBER, Camera, Surfels
 from .base import SurfelModel, view_directions
+from .gabor import BASE_COLOR_LR, WAVE_L1, WAVE_L1_COUNT
 
 INIT_BOUND = 1 / 5       # w1, b1 ~ U(-INIT_BOUND, INIT_BOUND): SIREN's first layer, 1 / its 5 inputs
 INIT_AMPLITUDE = 0.05    # w2 ~ this x U(-1, 1) at the start: the point colour plus a faint pattern
@@ -58,6 +61,10 @@ class NeuralGaborConfig:
     omega: float = field(default=OMEGA, metadata={
         "help": "SIREN's frequency factor on the first layer: a hidden unit's wave vector is omega x its (u, v) "
                 "weights, in radians per sigma (larger: finer patterns within reach at the start, and faster)"})
+    amplitude_l1: float = field(default=WAVE_L1, metadata={
+        "help": "L1 penalty on the hidden units' colours (amplitude_l1 x their sum over surfels, for 2000 surfels, "
+                "scaled by 2000 / the count), gabor's --wave-l1: units the images do not ask for decay, so plain "
+                "colour renders as 2DGS renders it; 0: off"})
     view_dependent: bool = field(default=False, metadata={
         "help": "feed the view direction to the network (the paper's network; measured worse on the built-in scenes, "
                 "see BENCHMARKS.md); off: colour depends on (u, v) only"})
@@ -68,6 +75,8 @@ class NeuralGaborConfig:
         self.hidden = int(self.hidden)
         if not 0 < float(self.omega) <= 1000:
             raise ShapeError(f"omega must be a number in (0, 1000], got {self.omega}")
+        if not 0 <= float(self.amplitude_l1) < math.inf:
+            raise ShapeError(f"amplitude_l1 must be a finite number >= 0 (0: off), got {self.amplitude_l1}")
 
 
 class NeuralGaborModel(SurfelModel):
@@ -128,7 +137,16 @@ class NeuralGaborModel(SurfelModel):
     def optim_groups(self, scene_extent: float) -> list[dict]:
         return self.geometry_groups(scene_extent) + [
             {"name": name, "params": [getattr(self, name)], "lr": NETWORK_LR}
-            for name in ("net_w1", "net_b1", "net_w2", "net_b2")]
+            for name in ("net_w1", "net_b1", "net_w2")] + [
+            {"name": "net_b2", "params": [self.net_b2], "lr": BASE_COLOR_LR}]
+
+    def regulariser(self) -> torch.Tensor | None:
+        """amplitude_l1 x the sum of |w2| scaled by WAVE_L1_COUNT / the count: gabor's sparse waves (see
+        GaborModel.regulariser), for the hidden units' colours."""
+        if float(self.config.amplitude_l1) <= 0:
+            return None
+        strength = float(self.config.amplitude_l1) * WAVE_L1_COUNT / max(self.num_primitives, 1)
+        return strength * self.net_w2.abs().sum()
 
     def summary(self) -> dict:
         with torch.no_grad():
