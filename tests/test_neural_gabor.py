@@ -120,8 +120,8 @@ def test_size_and_options():
 
 def test_amplitude_penalty_is_gabors_sparse_waves():
     model = _model(n=10)
-    want = model.config.amplitude_l1 * 2000 / 10 * float(model.net_w2.abs().sum())
-    assert math.isclose(float(model.regulariser()), want, rel_tol=1e-6)
+    want = model.config.amplitude_l1 * 2000 / 10 * float(model.net_w2.detach().abs().sum())
+    assert math.isclose(float(model.regulariser().detach()), want, rel_tol=1e-6)
     assert _model(n=10, amplitude_l1=0.0).regulariser() is None
     with pytest.raises(ShapeError, match="amplitude_l1"):
         _model(amplitude_l1=-1.0)
