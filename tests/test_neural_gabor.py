@@ -17,8 +17,8 @@ def _model(n=1, seed=0, **options):
     pts = torch.randn(n, 3, generator=gen) * 0.2
     cols = torch.rand(n, 3, generator=gen)
     model = splatzoo.create_model("neural-gabor", pts, cols, seed=seed, **options)
-    with torch.no_grad():  # a strong pattern: the start's amplitudes are faint
-        model.net_w2.mul_(8.0)
+    with torch.no_grad():  # a strong pattern: the start's hidden units are colourless
+        model.net_w2.copy_(0.4 * (2 * torch.rand(model.net_w2.shape, generator=gen) - 1))
         model.net_b2.fill_(0.5)
     return model
 
@@ -34,6 +34,21 @@ def _pixel_uv(camera: Camera, mean, scale) -> torch.Tensor:
     t = (mean[2] - eye[2]) / dirs[..., 2]
     hit = eye + t[..., None] * dirs
     return (hit[..., :2] - mean[:2]) / scale
+
+
+def test_starts_as_its_2dgs_surfel():
+    """Colourless hidden units at the start: a new model renders what 2DGS renders from the same points and seed."""
+    gen = torch.Generator().manual_seed(5)
+    pts, cols = torch.randn(40, 3, generator=gen) * 0.3, torch.rand(40, 3, generator=gen)
+    neural = splatzoo.create_model("neural-gabor", pts, cols, seed=5)
+    plain = splatzoo.create_model("2dgs", pts, cols, seed=5)
+    assert float(neural.net_w2.detach().abs().max()) == 0.0  # colourless units...
+    assert float(neural.net_w1.detach().abs().max()) > 0     # ... whose waves can still grow
+    cam = Camera.look_at([0.4, 0.3, -2.5], [0.0, 0.0, 0.0], width=40, height=40, fov_deg=40)
+    with torch.no_grad():
+        a, b = neural.render(cam, backend="cpu"), plain.render(cam, backend="cpu")
+    assert float(b.alpha.max()) > 0.5
+    assert torch.allclose(a.rgb, b.rgb, atol=1e-5) and torch.allclose(a.alpha, b.alpha, atol=1e-6)
 
 
 @pytest.mark.parametrize("backend", ["reference", "cpu"])

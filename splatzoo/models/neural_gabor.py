@@ -27,9 +27,11 @@ public repository; the choices here are splatzoo's, measured on the built-in sce
   with the view (it lost 0.6-0.8 dB on both the quick sweater and its specular twin at 21 training views, as if it
   fitted each view's phase on its own); `--view-dependent` gives the paper's network.
 
-Start (the release's SIREN initialisation, with our colour start): w1, b1 ~ U(-1/5, 1/5) (its 5 inputs), w2 ~
-INIT_AMPLITUDE U(-1, 1) (the release draws the whole SIREN range, U(-sqrt(6/5), sqrt(6/5)), with random b2; a small
-residual around the point colour keeps the start where a 2DGS surfel's is), b2 the point colour. Learning rates: the
+Start (the release's SIREN initialisation for the first layer, with our colour start): w1, b1 ~ U(-1/5, 1/5) (its 5
+inputs), w2 = 0 and b2 the point colour, so every surfel starts as its 2DGS surfel. The release draws w2 over the
+whole SIREN range, U(-sqrt(6/5), sqrt(6/5)), with a random b2; here a hidden unit starts colourless and grows where
+the images ask for a pattern (its gradient is sin(...) x the colour's, nonzero with random w1 and b1), which beat a
+faint random start on plain colour and fine texture alike (BENCHMARKS.md, "neural-gabor"). Learning rates: the
 release's 2.5e-3 for w1, b1, w2; 2DGS's colour pace for b2 (gabor's base colour's). As gabor's waves, the hidden
 units' colours w2 carry a small L1 penalty (`amplitude_l1`, gabor's `wave_l1`), so units the images do not ask for
 fade and plain colour renders as 2DGS renders it. Densification: the release's frequency-aware densification (`--strategy
@@ -50,7 +52,6 @@ from .base import SurfelModel, view_directions
 from .gabor import BASE_COLOR_LR, WAVE_L1, WAVE_L1_COUNT
 
 INIT_BOUND = 1 / 5       # w1, b1 ~ U(-INIT_BOUND, INIT_BOUND): SIREN's first layer, 1 / its 5 inputs
-INIT_AMPLITUDE = 0.05    # w2 ~ this x U(-1, 1) at the start: the point colour plus a faint pattern
 NETWORK_LR = 2.5e-3      # the release's rate for every network parameter
 OMEGA = 8.0              # the first layer's frequency factor (module docstring)
 
@@ -96,7 +97,7 @@ class NeuralGaborModel(SurfelModel):
         n, h, inputs = self.net_w1.shape
         self.net_w1.copy_(INIT_BOUND * (2 * torch.rand(n, h, inputs, generator=generator) - 1))
         self.net_b1.copy_(INIT_BOUND * (2 * torch.rand(n, h, generator=generator) - 1))
-        self.net_w2.copy_(INIT_AMPLITUDE * (2 * torch.rand(n, h, 3, generator=generator) - 1))
+        self.net_w2.zero_()  # colourless hidden units: the start renders as the 2DGS surfel
         self.net_b2.copy_(colors)
 
     def hidden_inputs(self, camera: Camera) -> torch.Tensor:
