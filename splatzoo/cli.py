@@ -267,6 +267,11 @@ def _model_file(run: Path, data: Optional[Path]) -> bool:
     return False
 
 
+_STRATEGY = typer.Option("auto", "--strategy", help="how densification grows the count. auto (default): the "
+                         "model's own choice (frequency for neural-gabor, adc for the others); adc: 2DGS's adaptive "
+                         "density control (clone, split, prune, opacity resets); mcmc: grow 5% a step to the budget, "
+                         "then relocate dead surfels onto live ones; frequency: Neural Gabor splatting's, grow where "
+                         "the render's frequency bands differ from the photos', opacities decay instead of resets")
 _TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "densify_views", "num_primitives",
                  "max_primitives", "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size",
                  "nproc", "antialias", "random_downscale")
@@ -295,12 +300,7 @@ def train_command(
     background: Optional[str] = _BACKGROUND,
     white_background: bool = _WHITE,
     densify: bool = typer.Option(True, "--densify/--no-densify", help="densification (off: a fixed count)"),
-    strategy: str = typer.Option("auto", "--strategy", help="auto (default): the model's own choice (frequency for "
-                                 "neural-gabor, adc for the others); adc: 2DGS's adaptive density control (clone, "
-                                 "split, prune, opacity resets); mcmc: grow 5% a step to the budget, then relocate "
-                                 "dead surfels onto live ones; frequency: Neural Gabor splatting's, grow where the "
-                                 "render's frequency bands differ from the photos', opacities decay instead of "
-                                 "resets"),
+    strategy: str = _STRATEGY,
     densify_views: int = typer.Option(20, "--densify-views", help="--strategy frequency: training views rendered "
                                       "at each densification step (all of them when there are fewer)"),
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n",
@@ -514,6 +514,7 @@ def compare_command(
     iterations: Optional[int] = typer.Option(None, "--iterations", "-i", help="iterations per model (30000; quick 1500)"),
     num_primitives: Optional[int] = typer.Option(None, "--num-primitives", "-n", help="equal primitive count for all"),
     densify: bool = typer.Option(False, "--densify/--no-densify", help="densify (off: the paper's fixed-count protocol)"),
+    strategy: str = _STRATEGY,
     quick: bool = typer.Option(False, "--quick", help="small scene and short schedule: a few minutes on 2 cores"),
     equal_bytes: bool = typer.Option(False, "--equal-bytes", help="equal model size instead of equal count: the first "
                                      "model gets --num-primitives and its trained size (after pruning waves, if "
@@ -542,7 +543,7 @@ def compare_command(
     if skip_missing:
         scene_options["skip_missing"] = True
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
-            seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite, equal_bytes=equal_bytes,
+            strategy=strategy, seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite, equal_bytes=equal_bytes,
             antialias=antialias, random_downscale=random_downscale, scene_options=scene_options)
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")

@@ -79,8 +79,8 @@ def parse_model_list(text: str) -> list[ModelChoice]:
 
 
 def compare(models: list[str], data=None, out="runs/compare", *, iterations: int | None = None,
-            num_primitives: int | None = None, densify: bool = False, quick: bool = False, seed: int = 0,
-            backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
+            num_primitives: int | None = None, densify: bool = False, strategy: str = "auto", quick: bool = False,
+            seed: int = 0, backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
             synthetic_scene: str | None = None, overwrite: bool = False, equal_bytes: bool = False,
             antialias: bool = True, random_downscale: float = 0.0) -> dict:
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
@@ -89,7 +89,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     size of the first model trained with `num_primitives` (after pruning, for adaptive waves): every other model
     gets as many primitives as fit in it (an adaptive one, as if it kept every wave). `antialias`
     trains and renders every model with the pixel-footprint filter (`random_downscale`: that fraction of the training
-    views at 1/2 or 1/4 size). Runs in out/runs/<label> made with the same
+    views at 1/2 or 1/4 size). `strategy` (with `densify`): every model densifies so ("auto": each its own). Runs in
+    out/runs/<label> made with the same
     settings are reused (finished) or resumed (interrupted); made with other settings, they are an error, or
     retrained with `overwrite`."""
     from .data import load_scene
@@ -102,6 +103,9 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     if len(set(labels)) != len(labels) or len({_safe(k) for k in labels}) != len(labels):
         raise SplatzooError(f"each model may appear once; got {', '.join(labels)}")
     model_configs = {c.label: make_config(c.model, **c.options) for c in choices}  # a typo fails before training
+    if strategy != "auto" and not densify:
+        raise SplatzooError(f"--strategy {strategy} chooses how densification grows the count; add --densify, or "
+                            "leave --strategy out for the fixed-count protocol")
     out = Path(out)
     preset = QuickPreset() if quick else None
     if data is None:
@@ -110,8 +114,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     scene = load_scene(data, **scene_options)
     iterations = iterations or (preset.iterations if preset else 30000)
     num_primitives = num_primitives or (preset.num_primitives if preset else None)
-    base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, seed=seed,
-                           backend=backend, antialias=antialias,
+    base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, strategy=strategy,
+                           seed=seed, backend=backend, antialias=antialias,
                            random_downscale=random_downscale).validate()
     if equal_bytes and (densify or not num_primitives):
         raise SplatzooError("--equal-bytes compares models at fixed primitive counts: give --num-primitives (or "
@@ -155,7 +159,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         if equal_bytes:
             budget = int(runs[choices[0].label]["size_bytes"])
     settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
-                "num_primitives": num_primitives, "densify": densify, "seed": seed,
+                "num_primitives": num_primitives, "densify": densify, "strategy": strategy, "seed": seed,
                 "backend": runs[choices[-1].label].get("backend", backend), "scene_options": scene_options,
                 "models": labels, "equal_bytes": equal_bytes, "antialias": antialias,
                 "random_downscale": random_downscale, "primitives": counts,
@@ -181,6 +185,13 @@ def bytes_per_primitive(choice: ModelChoice) -> int:
 
 def _safe(label: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
+
+
+def _densification(settings: dict) -> str:
+    if not settings["densify"]:
+        return "densification off"
+    strategy = settings.get("strategy", "auto")
+    return f"densification on ({'each model its own strategy' if strategy == 'auto' else f'strategy {strategy}'})"
 
 
 def _num(v) -> float:
@@ -216,7 +227,7 @@ def report_markdown(report: dict) -> str:
     lines = [
         f"# splatzoo compare: {', '.join(labels)}", "",
         f"Scene `{s['scene']}` ({s['train_views']} train / {s['test_views']} test views), {s['iterations']} iterations, "
-        f"{'densification on' if s['densify'] else 'densification off'}, "
+        f"{_densification(s)}, "
         f"{budget}, seed {s['seed']}, backend `{s['backend']}`"
         f"{', anti-aliased (pixel-footprint filter)' if s.get('antialias') else ''}"
         f"{downscaled}.", "",

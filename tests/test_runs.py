@@ -499,3 +499,22 @@ def test_a_run_recorded_before_a_training_field_existed_is_reused():
     assert changed == ["strategy: run has 'adc', asked 'frequency'"]
     assert differences({"model": "2dgs", "train": {**old_train, "densify_views": 3}},
                        {"model": "2dgs", "train": wanted_train}) == ["densify_views: run has 3, asked 20"]
+
+
+def test_compare_with_one_densification_strategy(tiny_data, tmp_path):
+    """--strategy with --densify: every model densifies so (the runs record it, so it is a setting, never a reuse);
+    without --densify it is an error naming the missing option, before any training."""
+    out = tmp_path / "cmp"
+    base = ["compare", "2dgs", "neural-gabor", "--data", str(tiny_data), "--out", str(out), "--num-primitives", "60",
+            "--backend", "cpu", "--iterations", "4"]
+    r = runner.invoke(app, base + ["--strategy", "mcmc"])
+    assert r.exit_code != 0 and "--densify" in str(r.exception) and not out.exists()
+    r = runner.invoke(app, base + ["--densify", "--strategy", "mcmc"])
+    assert r.exit_code == 0, r.output
+    for label in ("2dgs", "neural-gabor"):
+        assert json.loads((out / "runs" / label / "config.json").read_text())["train"]["strategy"] == "mcmc"
+    assert "strategy mcmc" in (out / "report.md").read_text()
+    r = runner.invoke(app, base + ["--densify"])  # auto: each its own, another setting for neural-gabor
+    assert r.exit_code != 0 and "strategy" in str(r.exception)
+    r = runner.invoke(app, base + ["--densify", "--strategy", "shuffle"])
+    assert r.exit_code != 0 and "--strategy must be one of" in str(r.exception)
