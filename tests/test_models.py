@@ -261,36 +261,25 @@ def test_nearest_neighbour_distance_matches_brute_force():
     assert torch.allclose(two, torch.tensor([5.0, 5.0]))
 
 
-def test_a_model_that_draws_nothing_is_refused_on_load(tmp_path):
-    """Every opacity below 1/255 (a diverged run, an edited file): nothing renders and nothing can be learned; loading
-    names the parameter instead of producing black images and a training that stands still."""
+@pytest.mark.parametrize("name, param, hidden, visible, message", [
+    # every opacity below 1/255 (a diverged run, an edited file)
+    ("beta", "logit_opacity", -20.0, (3,), "logit_opacity: every one of its 64 surfels has an opacity below 1/255"),
+    # opacities that pass, but texture alphas at zero everywhere
+    ("textured", "texture_alpha_logit", -30.0, (5, 0, 1), "texture_alpha_logit: every one of the 64 surfels"),
+])
+def test_a_model_that_draws_nothing_is_refused_on_load(tmp_path, name, param, hidden, visible, message):
+    """Nothing renders and nothing can be learned: loading names the parameter instead of producing black images and a
+    training that stands still. One visible surfel (or one texel of one surfel) is a model."""
     from splatzoo.errors import SplatzooError
 
     pts, cols = point_cloud()
-    model = splatzoo.create_model("beta", pts, cols, seed=1)
+    model = splatzoo.create_model(name, pts, cols, seed=1)
     with torch.no_grad():
-        model.logit_opacity.fill_(-20.0)
+        getattr(model, param).fill_(hidden)
     splatzoo.save_model(model, tmp_path / "model.pt")
-    with pytest.raises(SplatzooError, match="logit_opacity: every one of its 64 surfels has an opacity below 1/255"):
+    with pytest.raises(SplatzooError, match=message):
         splatzoo.load_model(tmp_path / "model.pt")
     with torch.no_grad():
-        model.logit_opacity[3] = 0.0  # one visible surfel is a model
-    splatzoo.save_model(model, tmp_path / "model.pt")
-    assert splatzoo.load_model(tmp_path / "model.pt").num_primitives == 64
-
-
-def test_a_textured_model_whose_textures_hide_everything_is_refused_on_load(tmp_path):
-    """Opacities that pass but texture alphas at zero everywhere draw nothing too: loading names the texture."""
-    from splatzoo.errors import SplatzooError
-
-    pts, cols = point_cloud()
-    model = splatzoo.create_model("textured", pts, cols, seed=1)
-    with torch.no_grad():
-        model.texture_alpha_logit.fill_(-30.0)
-    splatzoo.save_model(model, tmp_path / "model.pt")
-    with pytest.raises(SplatzooError, match="texture_alpha_logit: every one of the 64 surfels"):
-        splatzoo.load_model(tmp_path / "model.pt")
-    with torch.no_grad():
-        model.texture_alpha_logit[5, 0, 1] = 0.0  # one texel of one surfel shows
+        getattr(model, param)[visible] = 0.0
     splatzoo.save_model(model, tmp_path / "model.pt")
     assert splatzoo.load_model(tmp_path / "model.pt").num_primitives == 64
