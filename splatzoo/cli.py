@@ -543,8 +543,9 @@ def compare_command(
     if skip_missing:
         scene_options["skip_missing"] = True
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
-            strategy=strategy, seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite, equal_bytes=equal_bytes,
-            antialias=antialias, random_downscale=random_downscale, scene_options=scene_options)
+            strategy=strategy, seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite,
+            equal_bytes=equal_bytes, antialias=antialias, random_downscale=random_downscale,
+            scene_options=scene_options)
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")
 

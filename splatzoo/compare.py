@@ -90,9 +90,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     gets as many primitives as fit in it (an adaptive one, as if it kept every wave). `antialias`
     trains and renders every model with the pixel-footprint filter (`random_downscale`: that fraction of the training
     views at 1/2 or 1/4 size). `strategy` (with `densify`): every model densifies so ("auto": each its own). Runs in
-    out/runs/<label> made with the same
-    settings are reused (finished) or resumed (interrupted); made with other settings, they are an error, or
-    retrained with `overwrite`."""
+    out/runs/<label> made with the same settings are reused (finished) or resumed (interrupted); made with other
+    settings, they are an error, or retrained with `overwrite`."""
     from .data import load_scene
     from .zoo import make_config
 

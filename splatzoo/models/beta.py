@@ -25,7 +25,7 @@ from .surfel2d import Surfel2DConfig, Surfel2DModel
 
 FALLOFF_INIT_LOGIT = -3.0  # s = 0.047 at the start: nearly the Gaussian
 # the logit's rate: 0.02 / 0.01 / 0.005 / 0.002 measured on the quick knit scenes; 0.005 is ahead of 2DGS on all four
-# (0.02 fell 0.06-0.07 dB under it on vest and shirt; BENCHMARKS.md, "The zoo on the four knit scenes")
+# (0.02 fell 0.06-0.07 dB under it on vest and shirt; BENCHMARKS.md, "beta's falloff rate")
 FALLOFF_LR = 0.005
 
 
