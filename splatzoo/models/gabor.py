@@ -50,6 +50,16 @@ BASE_COLOR_LR = 2.5e-3 * SH_C0
 # within 0.002 over white, three seeds) and costs fine texture least (BENCHMARKS.md, "Sparse waves by default")
 WAVE_L1 = 3e-6
 WAVE_L1_COUNT = 2000  # ... chosen with this many surfels (wave_l1_per_count scales it by this / the surfel count)
+
+
+def sparse_l1(weights: torch.Tensor, strength: float, count: int, per_count: bool = True) -> torch.Tensor:
+    """strength x the sum of |weights|, scaled by WAVE_L1_COUNT / count with `per_count` (the sparse-wave penalty
+    of gabor's waves and neural-gabor's hidden units; GaborModel.regulariser says why it scales)."""
+    if per_count:
+        strength *= WAVE_L1_COUNT / max(count, 1)
+    return strength * weights.abs().sum()
+
+
 PRUNE_RAMP = 0.8  # the pruning threshold reaches its full value after this fraction of the pruning period
 MEASURED_PRUNINGS = 8  # prune_psnr: about this many measured prunings over the pruning period (and one at the end)
 BISECTION_STEPS = 7    # prune_psnr: the share of waves removed is found to 1/2^this of the active waves
@@ -323,10 +333,8 @@ class GaborModel(SurfelModel):
         what it was at WAVE_L1_COUNT surfels when densification multiplies them."""
         if float(self.config.wave_l1) <= 0 or not self.residual:
             return None
-        strength = float(self.config.wave_l1)
-        if self.config.wave_l1_per_count:
-            strength *= WAVE_L1_COUNT / max(self.num_primitives, 1)
-        return strength * self.wave_weights.abs().sum()
+        return sparse_l1(self.wave_weights, float(self.config.wave_l1), self.num_primitives,
+                         per_count=self.config.wave_l1_per_count)
 
     # --- adaptive waves ---------------------------------------------------------------------------------------
     def on_step(self, step: int, train_config, optimizer) -> dict | None:

@@ -49,7 +49,7 @@ from torch import nn
 from ..errors import ShapeError
 from ..types import MAX_WAVE_NUMBER, Camera, Surfels
 from .base import SurfelModel, view_directions
-from .gabor import BASE_COLOR_LR, WAVE_L1, WAVE_L1_COUNT
+from .gabor import BASE_COLOR_LR, WAVE_L1, sparse_l1
 
 INIT_BOUND = 1 / 5       # w1, b1 ~ U(-INIT_BOUND, INIT_BOUND): SIREN's first layer, 1 / its 5 inputs
 NETWORK_LR = 2.5e-3      # the release's rate for every network parameter
@@ -146,8 +146,7 @@ class NeuralGaborModel(SurfelModel):
         GaborModel.regulariser), for the hidden units' colours."""
         if float(self.config.amplitude_l1) <= 0:
             return None
-        strength = float(self.config.amplitude_l1) * WAVE_L1_COUNT / max(self.num_primitives, 1)
-        return strength * self.net_w2.abs().sum()
+        return sparse_l1(self.net_w2, float(self.config.amplitude_l1), self.num_primitives)
 
     def summary(self) -> dict:
         with torch.no_grad():
