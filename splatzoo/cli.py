@@ -525,7 +525,8 @@ def compare_command(
                                            "1/2 or 1/4 size against the area-averaged image (with --antialias)"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other "
-                                   "settings (without it they are an error; runs with the same settings are reused)"),
+                                   "settings or by other splatzoo code (without it other settings are an error; "
+                                   "runs with the same settings are reused, those by other code named in the report)"),
     backend: str = _BACKEND,
     resolution: Optional[int] = _RESOLUTION,
     max_width: Optional[int] = _MAX_WIDTH,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import torch
 
 from .errors import SplatzooError
 from .io import atomic_path, write_json, write_text
-from .runs import Run, differences, evaluate_run, make_record, train
+from .runs import Run, differences, evaluate_run, made_by_other_code, make_record, train
 from .training import TrainConfig
 
 
@@ -91,7 +92,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     trains and renders every model with the pixel-footprint filter (`random_downscale`: that fraction of the training
     views at 1/2 or 1/4 size). `strategy` (with `densify`): every model densifies so ("auto": each its own). Runs in
     out/runs/<label> made with the same settings are reused (finished) or resumed (interrupted); made with other
-    settings, they are an error, or retrained with `overwrite`."""
+    settings, they are an error, or retrained with `overwrite`. Runs trained by other code (runs.code_fingerprint)
+    are reused and named in the report, or retrained with `overwrite`."""
     from .data import load_scene
     from .zoo import make_config
 
@@ -130,10 +132,19 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         run, cfg = run_dirs[c.label], replace(base_cfg, num_primitives=count)
         status = run.status
         if status != "new":
-            diffs = differences(run.record(), make_record(scene, scene_options, c.model, model_configs[c.label], cfg))
+            record = run.record()
+            diffs = differences(record, make_record(scene, scene_options, c.model, model_configs[c.label], cfg))
             if diffs and not overwrite:
                 raise SplatzooError(f"{run.path} was trained with other settings ({'; '.join(diffs)}); pass "
                                     "--overwrite to retrain it, or choose another --out")
+            if made_by_other_code(record) and status != "started":
+                if overwrite:
+                    diffs = diffs or ["code"]
+                else:  # same settings, older code: kept (it may be hours of training), and said so
+                    other_code.append(c.label)
+                    print(f"note: {run.path} was trained by other splatzoo code (its model, trainer, rasterizer or "
+                          "metrics sources changed since); its numbers are reused and marked in the report. "
+                          "--overwrite retrains it with today's code", file=sys.stderr, flush=True)
             status = "overwrite" if diffs else status
         return cfg, status
 
@@ -148,7 +159,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     # equal count: decide every run before training any. Equal bytes: the first model sets the budget, then the
     # others are decided.
     phases = [choices[:1], choices[1:]] if equal_bytes else [choices]
-    counts, runs, budget = {}, {}, None
+    counts, runs, budget, other_code = {}, {}, None, []
     for phase in phases:
         for c in phase:
             counts[c.label] = num_primitives if budget is None else max(1, budget // bytes_per_primitive(c))
@@ -161,7 +172,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
                 "num_primitives": num_primitives, "densify": densify, "strategy": strategy, "seed": seed,
                 "backend": runs[choices[-1].label].get("backend", backend), "scene_options": scene_options,
                 "models": labels, "equal_bytes": equal_bytes, "antialias": antialias,
-                "random_downscale": random_downscale, "primitives": counts,
+                "random_downscale": random_downscale, "primitives": counts, "trained_by_other_code": other_code,
                 "train_views": len(scene.train), "test_views": len(scene.test)}
     report = {"runs": runs, "settings": settings}
     write_json(out / "compare.json", report)
@@ -237,6 +248,9 @@ def report_markdown(report: dict) -> str:
         lines.append(f"| {k} | {cell(k, 'ssim', '.4f')} | {cell(k, 'psnr', '.2f')} | {cell(k, 'lpips', '.4f')} "
                      f"| {cell(k, 'fps', '.1f')} | {cell(k, 'train_seconds', '.0f')} | "
                      f"{get(k, 'size_bytes') / 1e6:.3f} | {runs[k].get('num_primitives')} |")
+    if s.get("trained_by_other_code"):
+        lines += ["", f"Reused runs trained by other splatzoo code than this report's: "
+                  f"{', '.join(s['trained_by_other_code'])}. `--overwrite` retrains them with today's code."]
     lines += ["", f"Against `{first}`:", "", "| model | ΔPSNR dB | ΔSSIM | ΔLPIPS | FPS ratio | train-time ratio | size ratio |",
               "|---|---|---|---|---|---|---|"]
     for k in labels:

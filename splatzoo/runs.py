@@ -2,7 +2,8 @@
 
 A run folder holds
   config.json       what made the run: dataset (absolute path and fingerprint), load options, model and its full
-                    config, training config; resume and reuse happen only when these match
+                    config, training config; resume and reuse happen only when these match. Also a fingerprint of
+                    the code that trained it (code_fingerprint): a run made by other code is named as such
   checkpoint.pt     the latest training state (written atomically; by iteration, by time and on SIGINT/SIGTERM)
   model.pt          the trained model (present once training finished)
   train_log.jsonl   one JSON record per logged iteration
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import functools
 import hashlib
 import json
 import os
@@ -41,6 +43,9 @@ LOCK_NAME = ".splatzoo.lock"
 RUN_ENTRIES = ("config.json", "checkpoint.pt", "model.pt", "train_log.jsonl", "metrics.json", "renders", "mesh.ply")
 SCENE_OPTION_DEFAULTS = {"resolution": None, "max_width": None, "test_every": 8, "background": "auto",
                          "skip_missing": False}
+# the sources that decide a run's numbers (the dataset has its own fingerprint): the models, the trainer, the
+# rasterizers and the metrics; a run records their hash, so compare can tell a run made by other code
+TRAINING_CODE = ("models", "training", "rasterizers", "csrc", "types.py", "geometry.py", "metrics.py", "evaluate.py")
 
 
 class RunLockedError(SplatzooError):
@@ -97,6 +102,44 @@ def scene_fingerprint(scene) -> str:
     return h.hexdigest()[:32]
 
 
+def code_fingerprint(model: str) -> str:
+    """A hash (16 hex digits) of the code that trains and scores `model`: splatzoo's TRAINING_CODE and, for a plugin,
+    the source file of its class. A run made before an edit to any of them has another fingerprint."""
+    return _code_fingerprint(model)
+
+
+@functools.lru_cache(maxsize=None)
+def _code_fingerprint(model: str) -> str:
+    import inspect
+
+    from .registry import MODELS
+
+    package = Path(__file__).resolve().parent
+    files = []
+    for entry in TRAINING_CODE:
+        path = package / entry
+        files += sorted(f for f in path.rglob("*") if f.suffix in (".py", ".h", ".cpp", ".cu")) if path.is_dir() \
+            else [path]
+    try:
+        source = Path(inspect.getsourcefile(MODELS.get(model).cls)).resolve()
+    except (KeyError, TypeError, OSError, SplatzooError):  # an unknown name or a class without a file: the core
+        source = None
+    if source is not None and package not in source.parents:
+        files.append(source)
+    h = hashlib.sha256()
+    for f in files:
+        name = f.relative_to(package) if package in f.parents else f.name
+        h.update(f"{name}\0".encode() + (f.read_bytes() if f.is_file() else b"") + b"\0")
+    return h.hexdigest()[:16]
+
+
+def made_by_other_code(record: dict) -> bool:
+    """Whether the run of `record` was trained by other code than today's (see code_fingerprint). A run recorded
+    before runs kept a fingerprint cannot tell: it counts as today's."""
+    recorded = record.get("code")
+    return isinstance(recorded, str) and recorded != code_fingerprint(record.get("model", ""))
+
+
 def _scene_options_problem(options: dict) -> str | None:
     """What is wrong with the scene options of a run record (a hand edit, a damaged file), or None."""
     from .data.background import parse_background
@@ -148,7 +191,7 @@ def make_record(scene, scene_options: dict | None, model: str, model_config, cfg
     from . import __version__
 
     root = getattr(scene, "root", None)
-    return {"format": RUN_FORMAT, "splatzoo": __version__,
+    return {"format": RUN_FORMAT, "splatzoo": __version__, "code": code_fingerprint(model),
             "data": str(Path(root).expanduser().resolve()) if root else None,
             "data_fingerprint": scene_fingerprint(scene),
             "scene_options": normalize_scene_options(scene_options),
@@ -596,6 +639,9 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
             raise SplatzooError(f"--resume continues {out.path} with its own settings, but these differ: "
                                 + "; ".join(conflicts) + ". Resume without them, or train into another --out")
         model = record["model"]
+        if made_by_other_code(record):
+            print(f"note: {out.path} was started by other splatzoo code (its model, trainer, rasterizer or metrics "
+                  "sources changed since); it continues with today's", file=sys.stderr, flush=True)
         model_config = make_config(model, **stored_config(model, record["model_config"]))
         cfg = out.train_config(record)
         if config is not None:  # operational fields (backend, checkpoint cadence) may change on resume

@@ -67,6 +67,17 @@ print("ok")
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 
+def test_a_plugins_source_is_part_of_its_runs_code_fingerprint(plugin_env):
+    """compare tells runs made by other code apart: for a plugin model its own source file counts too."""
+    code = """
+from splatzoo.runs import code_fingerprint
+assert code_fingerprint("checker") != code_fingerprint("gabor") == code_fingerprint("2dgs")
+print("ok")
+"""
+    out = run(plugin_env, sys.executable, "-c", code)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
 def test_duplicate_builtin_registration_is_an_error():
     from splatzoo.errors import DuplicateNameError
     from splatzoo.registry import MODELS, ModelSpec

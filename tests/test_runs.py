@@ -121,6 +121,39 @@ def test_compare_never_reports_old_numbers(tiny_data, tmp_path):
     assert r.exit_code != 0 and "dataset" in str(r.exception)
 
 
+def test_compare_names_runs_made_by_other_code(tiny_data, tmp_path):
+    """A finished run whose recorded code fingerprint is not today's (the models, trainer, rasterizers or metrics
+    changed since) is reused but named in the report and on stderr; --overwrite retrains it with today's code. A
+    run recorded before runs kept a fingerprint counts as today's."""
+    from splatzoo.runs import code_fingerprint
+
+    out = tmp_path / "cmp"
+    base = ["compare", "2dgs", "--data", str(tiny_data), "--out", str(out), "--num-primitives", "50", "--backend",
+            "cpu", "--iterations", "4"]
+    assert runner.invoke(app, base).exit_code == 0
+    config = out / "runs" / "2dgs" / "config.json"
+    record = json.loads(config.read_text())
+    assert record["code"] == code_fingerprint("2dgs")
+    first = json.loads((out / "compare.json").read_text())["runs"]["2dgs"]
+    config.write_text(json.dumps({**record, "code": "0" * 16}))
+    r = runner.invoke(app, base)
+    assert r.exit_code == 0, r.output
+    report = json.loads((out / "compare.json").read_text())
+    assert report["runs"]["2dgs"] == first and report["settings"]["trained_by_other_code"] == ["2dgs"]
+    assert "trained by other splatzoo code" in (out / "report.md").read_text()
+    assert "trained by other splatzoo code" in r.stderr
+    r = runner.invoke(app, base + ["--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(config.read_text())["code"] == code_fingerprint("2dgs")
+    assert json.loads((out / "compare.json").read_text())["settings"]["trained_by_other_code"] == []
+    assert "other splatzoo code" not in (out / "report.md").read_text()
+    record = json.loads(config.read_text())
+    del record["code"]
+    config.write_text(json.dumps(record))
+    r = runner.invoke(app, base)
+    assert r.exit_code == 0 and "other splatzoo code" not in r.stderr
+
+
 def test_compare_at_equal_bytes(tiny_data, tmp_path):
     """--equal-bytes: the first model gets --num-primitives and its trained size is the budget, the others get as
     many primitives as fit in it; the runs record their own counts, so an equal-count comparison in the same folder
