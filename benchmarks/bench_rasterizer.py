@@ -7,7 +7,10 @@
 Scenes: "sphere" (surfels on a sphere and a back wall, 1-4 px sigma, opacity 0.2-1) and "dense" (surfels spread
 uniformly over the image at depth 2-4, 1.5-5 px sigma, opacity 0.1-0.95, tilted up to 50 degrees: many
 overlapping semi-transparent layers per pixel). K=4a is the adaptive case: K=4 with per-surfel wave counts drawn
-uniformly from 0..4. K=0t8 is the texture kind: K=0 waves and an 8x8 RGBA texture per surfel (--waves 0,0t4,0t8). "pairs" counts the (surfel, pixel) pairs a tile loop evaluates: for every (surfel, tile) pair,
+uniformly from 0..4. K=0t8 is the texture kind: K=0 waves and an 8x8 RGBA texture per surfel (--waves 0,0t4,0t8).
+A trailing "b" gives every surfel the Beta falloff instead of the Gaussian, s uniform in [0.3, 1] (what a trained
+`beta` holds: median 0.99 at the full protocol): the zoo's members are --waves 0,0b,4,6,0t4 (2dgs, beta, gabor,
+neural-gabor's 6 free-direction waves, textured). "pairs" counts the (surfel, pixel) pairs a tile loop evaluates: for every (surfel, tile) pair,
 the pixel rows of the tile inside the surfel's exact screen box, 16 pixels each; rates are per core for the CPU
 (divided by torch.get_num_threads()) and per GPU for CUDA. Times are end to end (`rasterize`, every field requiring
 grad; the backward of a loss on rgb, depth, normal and distortion), median of --repeats after one warm-up.
@@ -45,10 +48,11 @@ WAVES = ("0", "4", "4a")
 
 def make_scene(kind: str, n: int, width: int, height: int, waves: str, seed: int = 0, dtype=torch.float32):
     """A benchmark scene; waves "K", "Ka" (K waves with per-surfel counts drawn from 0..K) or "KtT" (K waves and a
-    T x T texture per surfel: rgb in [-0.3, 0.3], alpha in [0.5, 1])."""
+    T x T texture per surfel: rgb in [-0.3, 0.3], alpha in [0.5, 1]), each with a trailing "b" for Beta kernels."""
     from splatzoo.testing import dense_overlap, sphere_and_wall
 
-    waves, _, tex = waves.partition("t")
+    beta = waves.endswith("b")
+    waves, _, tex = waves.removesuffix("b").partition("t")
     K = int(waves.rstrip("a"))
     make = dense_overlap if kind == "dense" else sphere_and_wall
     s, cam = make(n, width, height, K, seed=seed, dtype=dtype)
@@ -58,6 +62,8 @@ def make_scene(kind: str, n: int, width: int, height: int, waves: str, seed: int
         T = int(tex)
         t = torch.rand(n, T, T, 4, generator=torch.Generator().manual_seed(seed + 1)).to(dtype)
         s.texture = torch.cat([(t[..., :3] - 0.5) * 0.6, 0.5 + 0.5 * t[..., 3:]], -1)
+    if beta:
+        s.falloff = (0.3 + 0.7 * torch.rand(n, generator=torch.Generator().manual_seed(seed + 2))).to(dtype)
     return s, cam
 
 
@@ -112,7 +118,7 @@ def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3,
     echo("-" * len(header))
     for name, kind, W, H, n, allowed in configs:
         for K in waves:
-            scene, cam = make_scene(kind, n, W, H, K, seed=n + int(K.partition("t")[0].rstrip("a")))
+            scene, cam = make_scene(kind, n, W, H, K, seed=n + int(K.partition("t")[0].rstrip("ab")))
             pairs = count_pairs(scene, cam)
             for backend in backends:
                 if backend not in allowed:
@@ -189,7 +195,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--backends", default=None, help="comma-separated subset of cuda,cpu,reference")
     ap.add_argument("--waves", default=",".join(WAVES),
-                    help="comma-separated wave counts: 0, 4, 4a (adaptive); 0t8: K=0 and 8x8 textures")
+                    help="comma-separated wave counts: 0, 4, 4a (adaptive); 0t8: K=0 and 8x8 textures; "
+                         "a trailing b: Beta kernels (0,0b,4,6,0t4: the zoo's members)")
     group = ap.add_mutually_exclusive_group()
     group.add_argument("--quick", action="store_true", help="only the 128x128 scenes")
     group.add_argument("--gpu", action="store_true", help="the 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)")

@@ -38,10 +38,12 @@ else
 fi
 step bench $PY benchmarks/bench_rasterizer.py --backends cuda --json "$OUT/bench.json"
 step bench_gpu $PY benchmarks/bench_rasterizer.py --gpu --backends cuda --antialias off,on --json "$OUT/bench_gpu.json"
+# the zoo's members side by side (2dgs, beta, gabor, neural-gabor's 6 waves, textured 4x4), anti-aliased as they train
+step bench_kinds $PY benchmarks/bench_rasterizer.py --backends cuda --waves 0,0b,4,6,0t4 --antialias on --json "$OUT/bench_kinds.json"
 
 {
   echo "gpu-check $(date -u +%Y-%m-%dT%H:%MZ) on $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)"
-  for k in env build tests train_resume bench bench_gpu; do printf '%-14s %s\n' "$k" "${STATUS[$k]:-not run}"; done
+  for k in env build tests train_resume bench bench_gpu bench_kinds; do printf '%-14s %s\n' "$k" "${STATUS[$k]:-not run}"; done
   grep -E "passed|failed" "$OUT/tests.log" | tail -1
   tail -n 1 "$OUT/train_resume.log" 2>/dev/null
 } | tee "$OUT/summary.txt"

@@ -172,7 +172,9 @@ def bench_command(
     json_path: str = typer.Option("benchmarks/results/rasterizer.json", "--json", help="Where to write the JSON results."),
     repeats: int = typer.Option(3, help="Timed repeats per measurement (the median is reported)."),
     backends: Optional[str] = typer.Option(None, help="Comma-separated subset of cuda,cpu,reference (default: all available)."),
-    waves: str = typer.Option("0,4,4a", help="Comma-separated wave counts: 0 (2DGS), 4 (gabor), 4a (4 with mixed per-surfel counts)."),
+    waves: str = typer.Option("0,4,4a", help="Comma-separated wave counts: 0 (2DGS), 4 (gabor), 4a (4 with mixed "
+                              "per-surfel counts), 0t4 (a 4x4 texture); a trailing b: Beta kernels. The zoo's "
+                              "members: 0,0b,4,6,0t4."),
     quick: bool = typer.Option(False, "--quick", help="Only the 128x128 scenes (5k surfels, sparse and dense)."),
     gpu: bool = typer.Option(False, "--gpu", help="The 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)."),
     fps: Optional[Path] = typer.Option(None, "--fps", metavar="RUN",
