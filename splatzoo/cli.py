@@ -519,8 +519,9 @@ def compare_command(
     strategy: str = _STRATEGY,
     quick: bool = typer.Option(False, "--quick", help="small scene and short schedule: a few minutes on 2 cores"),
     equal_bytes: bool = typer.Option(False, "--equal-bytes", help="equal model size instead of equal count: the first "
-                                     "model gets --num-primitives and its trained size (after pruning waves, if "
-                                     "adaptive) is the budget; each other model gets as many as fit in it"),
+                                     "model gets --num-primitives (default: every initial point) and its trained size "
+                                     "(after pruning waves, if adaptive) is the budget; each other model gets as many "
+                                     "as fit in it"),
     antialias: bool = typer.Option(True, "--antialias/--no-antialias", help="train and render every model with the "
                                    "pixel-footprint filter (off: 2DGS's screen filter)"),
     random_downscale: float = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered at "

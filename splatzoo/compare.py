@@ -87,7 +87,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
     synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the stored
-    size of the first model trained with `num_primitives` (after pruning, for adaptive waves): every other model
+    size of the first model trained with `num_primitives` (None: every initial point, as an equal-count compare
+    trains it; after pruning, for adaptive waves): every other model
     gets as many primitives as fit in it (an adaptive one, as if it kept every wave). `antialias`
     trains and renders every model with the pixel-footprint filter (`random_downscale`: that fraction of the training
     views at 1/2 or 1/4 size). `strategy` (with `densify`): every model densifies so ("auto": each its own). Runs in
@@ -118,9 +119,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, strategy=strategy,
                            seed=seed, backend=backend, antialias=antialias,
                            random_downscale=random_downscale).validate()
-    if equal_bytes and (densify or not num_primitives):
-        raise SplatzooError("--equal-bytes compares models at fixed primitive counts: give --num-primitives (or "
-                            "--quick) and leave densification off")
+    if equal_bytes and densify:
+        raise SplatzooError("--equal-bytes compares models at fixed primitive counts: leave densification off")
     run_dirs = {c.label: Run(out / "runs" / _safe(c.label)) for c in choices}
     for run in run_dirs.values():
         if run.status == "foreign":
@@ -230,8 +230,9 @@ def report_markdown(report: dict) -> str:
 
     first = labels[0]
     conv = runs[first].get("conventions", {})
-    budget = (f"equal bytes: each model as many primitives as fit in the trained size of {s['num_primitives']} of "
-              f"`{first}`" if s.get("equal_bytes") else f"{s['num_primitives'] or 'all'} initial primitives")
+    budget = (f"equal bytes: each model as many primitives as fit in the trained size of "
+              f"{s['num_primitives'] or 'all initial points'} of `{first}`" if s.get("equal_bytes")
+              else f"{s['num_primitives'] or 'all'} initial primitives")
     downscaled = (f", {s['random_downscale']:g} of the training views at 1/2 or 1/4 size"
                   if s.get("random_downscale") else "")
     lines = [

@@ -196,6 +196,17 @@ def test_compare_at_equal_bytes(tiny_data, tmp_path):
     runs = json.loads((tmp_path / "cmp3" / "compare.json").read_text())["runs"]
     assert runs["gabor:prune_relative=2"]["size_bytes"] < 100 * 28 * 4
     assert runs["2dgs"]["num_primitives"] == runs["gabor:prune_relative=2"]["size_bytes"] // 52
+    # without --num-primitives the first model starts from every initial point, as an equal-count compare trains it:
+    # that run is reused as the budget (the paper's table first, then its "Ours*" in the same folder)
+    out4 = tmp_path / "cmp4"
+    plain = ["--data", str(tiny_data), "--out", str(out4), "--backend", "cpu", "--iterations", "4"]
+    assert runner.invoke(app, ["compare", "2dgs", *plain]).exit_code == 0
+    first = json.loads((out4 / "compare.json").read_text())["runs"]["2dgs"]
+    r = runner.invoke(app, ["compare", "2dgs", "gabor", *plain, "--equal-bytes"])
+    assert r.exit_code == 0, r.output
+    runs = json.loads((out4 / "compare.json").read_text())["runs"]
+    assert runs["2dgs"] == first and runs["gabor"]["num_primitives"] == first["size_bytes"] // (28 * 4)
+    assert "trained size of all initial points of `2dgs`" in (out4 / "report.md").read_text()
 
 
 def test_resume_takes_its_settings_from_the_run(tiny_data, tmp_path):
