@@ -102,14 +102,10 @@ def scene_fingerprint(scene) -> str:
     return h.hexdigest()[:32]
 
 
+@functools.lru_cache(maxsize=None)
 def code_fingerprint(model: str) -> str:
     """A hash (16 hex digits) of the code that trains and scores `model`: splatzoo's TRAINING_CODE and, for a plugin,
     the source file of its class. A run made before an edit to any of them has another fingerprint."""
-    return _code_fingerprint(model)
-
-
-@functools.lru_cache(maxsize=None)
-def _code_fingerprint(model: str) -> str:
     import inspect
 
     from .registry import MODELS
