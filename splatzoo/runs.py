@@ -110,23 +110,28 @@ def code_fingerprint(model: str) -> str:
 
     from .registry import MODELS
 
-    package = Path(__file__).resolve().parent
-    files = []
-    for entry in TRAINING_CODE:
-        path = package / entry
-        files += sorted(f for f in path.rglob("*") if f.suffix in (".py", ".h", ".cpp", ".cu")) if path.is_dir() \
-            else [path]
+    h = hashlib.sha256(_core_code_hash())
     try:
         source = Path(inspect.getsourcefile(MODELS.get(model).cls)).resolve()
-    except (KeyError, TypeError, OSError, SplatzooError):  # an unknown name or a class without a file: the core
+    except (TypeError, OSError, SplatzooError):  # an unknown name or a class without a file: the core alone
         source = None
-    if source is not None and package not in source.parents:
-        files.append(source)
-    h = hashlib.sha256()
-    for f in files:
-        name = f.relative_to(package) if package in f.parents else f.name
-        h.update(f"{name}\0".encode() + (f.read_bytes() if f.is_file() else b"") + b"\0")
+    if source is not None and Path(__file__).resolve().parent not in source.parents:
+        h.update(f"{source.name}\0".encode() + source.read_bytes())
     return h.hexdigest()[:16]
+
+
+@functools.lru_cache(maxsize=None)
+def _core_code_hash() -> bytes:
+    """sha256 of splatzoo's TRAINING_CODE (read once a process; every model's fingerprint starts from it)."""
+    package = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for entry in TRAINING_CODE:
+        path = package / entry
+        files = sorted(f for f in path.rglob("*") if f.suffix in (".py", ".h", ".cpp", ".cu")) if path.is_dir() \
+            else [path]
+        for f in files:
+            h.update(f"{f.relative_to(package)}\0".encode() + (f.read_bytes() if f.is_file() else b"") + b"\0")
+    return h.digest()
 
 
 def made_by_other_code(record: dict) -> bool:
