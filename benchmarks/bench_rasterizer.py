@@ -10,9 +10,9 @@ overlapping semi-transparent layers per pixel). K=4a is the adaptive case: K=4 w
 uniformly from 0..4. K=0t8 is the texture kind: K=0 waves and an 8x8 RGBA texture per surfel (--waves 0,0t4,0t8).
 A trailing "b" gives every surfel the Beta falloff instead of the Gaussian, s uniform in [0.3, 1] (what a trained
 `beta` holds: median 0.99 at the full protocol): the zoo's members are --waves 0,0b,4,6,0t4 (2dgs, beta, gabor,
-neural-gabor's 6 free-direction waves, textured). "pairs" counts the (surfel, pixel) pairs a tile loop evaluates: for every (surfel, tile) pair,
-the pixel rows of the tile inside the surfel's exact screen box, 16 pixels each; rates are per core for the CPU
-(divided by torch.get_num_threads()) and per GPU for CUDA. Times are end to end (`rasterize`, every field requiring
+neural-gabor's 6 free-direction waves, textured). "pairs" counts the (surfel, pixel) pairs a tile loop evaluates:
+for every (surfel, tile) pair, the pixel rows of the tile inside the surfel's exact screen box, 16 pixels each;
+rates are per core for the CPU (divided by torch.get_num_threads()) and per GPU for CUDA. Times are end to end (`rasterize`, every field requiring
 grad; the backward of a loss on rgb, depth, normal and distortion), median of --repeats after one warm-up.
 --antialias off,on times each case without and with the pixel-footprint filter (RasterSettings.pixel_filter), one
 right after the other, and prints the ratio.
@@ -46,20 +46,24 @@ GPU_CONFIGS = (
 WAVES = ("0", "4", "4a")
 
 
+def parse_waves(spec: str) -> tuple[int, bool, int, bool]:
+    """(K waves, adaptive counts, texture size T (0: none), Beta kernels) of a --waves entry such as 4a, 0t4 or 0b."""
+    beta = spec.endswith("b")
+    waves, _, tex = spec.removesuffix("b").partition("t")
+    return int(waves.rstrip("a")), waves.endswith("a"), int(tex or 0), beta
+
+
 def make_scene(kind: str, n: int, width: int, height: int, waves: str, seed: int = 0, dtype=torch.float32):
     """A benchmark scene; waves "K", "Ka" (K waves with per-surfel counts drawn from 0..K) or "KtT" (K waves and a
     T x T texture per surfel: rgb in [-0.3, 0.3], alpha in [0.5, 1]), each with a trailing "b" for Beta kernels."""
     from splatzoo.testing import dense_overlap, sphere_and_wall
 
-    beta = waves.endswith("b")
-    waves, _, tex = waves.removesuffix("b").partition("t")
-    K = int(waves.rstrip("a"))
+    K, adaptive, T, beta = parse_waves(waves)
     make = dense_overlap if kind == "dense" else sphere_and_wall
     s, cam = make(n, width, height, K, seed=seed, dtype=dtype)
-    if waves.endswith("a"):
+    if adaptive:
         s.wave_counts = torch.randint(0, K + 1, (n,), generator=torch.Generator().manual_seed(seed), dtype=torch.int32)
-    if tex:
-        T = int(tex)
+    if T:
         t = torch.rand(n, T, T, 4, generator=torch.Generator().manual_seed(seed + 1)).to(dtype)
         s.texture = torch.cat([(t[..., :3] - 0.5) * 0.6, 0.5 + 0.5 * t[..., 3:]], -1)
     if beta:
@@ -118,7 +122,7 @@ def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3,
     echo("-" * len(header))
     for name, kind, W, H, n, allowed in configs:
         for K in waves:
-            scene, cam = make_scene(kind, n, W, H, K, seed=n + int(K.partition("t")[0].rstrip("ab")))
+            scene, cam = make_scene(kind, n, W, H, K, seed=n + parse_waves(K)[0])
             pairs = count_pairs(scene, cam)
             for backend in backends:
                 if backend not in allowed:

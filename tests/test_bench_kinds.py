@@ -20,14 +20,15 @@ def _load(name):
 def test_rasterizer_benchmark_scenes_for_every_member(waves):
     from splatzoo.rasterizers import rasterize
 
-    s, cam = _load("bench_rasterizer").make_scene("sphere", 64, 32, 32, waves, seed=3)
+    bench = _load("bench_rasterizer")
+    s, cam = bench.make_scene("sphere", 64, 32, 32, waves, seed=3)
     s.validate()
     beta = waves.endswith("b")
     assert s.falloff is not None and bool((s.falloff > 0).all()) == beta  # zeros: the Gaussian
     if beta:
         assert 0.3 <= float(s.falloff.min()) and float(s.falloff.max()) <= 1.0
     assert (s.texture.shape[1] == 4) == ("t" in waves)  # no texture: an empty [N,0,0,4]
-    assert s.wave_vectors.shape[1] == int(waves.removesuffix("b").partition("t")[0].rstrip("a"))
+    assert s.wave_vectors.shape[1] == bench.parse_waves(waves)[0] == int(waves[0])
     out = rasterize(s, cam, backend="cpu")
     assert torch.isfinite(out.rgb).all() and out.alpha.max() > 0
 
