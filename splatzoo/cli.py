@@ -274,9 +274,15 @@ _STRATEGY = typer.Option("auto", "--strategy", help="how densification grows the
                          "density control (clone, split, prune, opacity resets); mcmc: grow 5% a step to the budget, "
                          "then relocate dead surfels onto live ones; frequency: Neural Gabor splatting's, grow where "
                          "the render's frequency bands differ from the photos', opacities decay instead of resets")
+_STORE = typer.Option("float32", "--store", help="the precision the model is stored at: float32, float16 or 8bit "
+                      "(positions at 16 bits, the rest 8 bits over each value's range); the end of training runs "
+                      "through the stored values, and the run's model (model.pt, model.szp) and numbers are the "
+                      "stored model's")
+_STORE_FINETUNE = typer.Option(0.1, "--store-finetune", help="fraction of the run, at its end, trained through the "
+                               "stored values (with --store below float32)")
 _TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "densify_views", "num_primitives",
                  "max_primitives", "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size",
-                 "nproc", "antialias", "random_downscale")
+                 "nproc", "antialias", "random_downscale", "store", "store_finetune")
 
 
 def _given(ctx: typer.Context) -> set[str]:
@@ -326,6 +332,8 @@ def train_command(
                                    "2DGS's screen filter, 1.1-1.3x faster on the CPU)"),
     random_downscale: float = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered "
                                            "at 1/2 or 1/4 size against the area-averaged image (with --antialias)"),
+    store: str = _STORE,
+    store_finetune: float = _STORE_FINETUNE,
     viewer: bool = typer.Option(False, "--viewer", help="watch training live in the browser (see `splatzoo view`); "
                                 "it stays open after training until Ctrl-C"),
     viewer_port: int = typer.Option(8080, "--viewer-port", help="port of the live viewer"),
@@ -412,7 +420,12 @@ def _report(result) -> None:
                    f"LPIPS {_fmt(m.get('lpips'), '.4f')}  {m['num_primitives']} primitives"
                    + (f"  {100 * m['wave_fraction']:.1f}% of the waves kept" if (m.get("wave_fraction") or 1.0) < 1.0
                       else "")
-                   + f"  {_fmt(m.get('fps'), '.1f')} FPS  {m['size_bytes'] / 1e6:.3f} MB  -> {result.run_dir}")
+                   + f"  {_fmt(m.get('fps'), '.1f')} FPS  {m['size_bytes'] / 1e6:.3f} MB"
+                   + (f" ({m['stored_bytes'] / 1e6:.3f} MB stored as {m['precision']}"
+                      + (f", {m['psnr'] - m['float32_psnr']:+.2f} dB against float32" if m.get("float32_psnr")
+                         is not None and m.get("psnr") is not None else "") + ")"
+                      if m.get("precision", "float32") != "float32" else "")
+                   + f"  -> {result.run_dir}")
 
 
 def _fmt(value, spec: str) -> str:
@@ -526,6 +539,11 @@ def compare_command(
                                    "pixel-footprint filter (off: 2DGS's screen filter)"),
     random_downscale: float = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered at "
                                            "1/2 or 1/4 size against the area-averaged image (with --antialias)"),
+    budgets: Optional[str] = typer.Option(None, "--budgets", help="rate-distortion curves: train every model at "
+                                          "every budget, each a fraction of the first model's stored size at its "
+                                          "count or a size (5%,25%,100% or 20kB,200kB); writes rate.png and a rate "
+                                          "table"),
+    store: str = _STORE,
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other "
                                    "settings or by other splatzoo code (without it other settings are an error; "
@@ -549,9 +567,10 @@ def compare_command(
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
             strategy=strategy, seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite,
             equal_bytes=equal_bytes, antialias=antialias, random_downscale=random_downscale,
-            scene_options=scene_options)
+            scene_options=scene_options, budgets=budgets, store=store)
     typer.echo((out / "report.md").read_text())
-    typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png, runs/<model>/")
+    typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png"
+               f"{', rate.png' if budgets else ''}, runs/<model>/")
 
 
 @app.command("sweep", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})

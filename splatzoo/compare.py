@@ -83,7 +83,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             num_primitives: int | None = None, densify: bool = False, strategy: str = "auto", quick: bool = False,
             seed: int = 0, backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
             synthetic_scene: str | None = None, overwrite: bool = False, equal_bytes: bool = False,
-            antialias: bool = True, random_downscale: float = 0.0) -> dict:
+            antialias: bool = True, random_downscale: float = 0.0, budgets=None, store: str = "float32") -> dict:
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
     synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the stored
@@ -94,7 +94,13 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     views at 1/2 or 1/4 size). `strategy` (with `densify`): every model densifies so ("auto": each its own). Runs in
     out/runs/<label> made with the same settings are reused (finished) or resumed (interrupted); made with other
     settings, they are an error, or retrained with `overwrite`. Runs trained by other code (runs.code_fingerprint)
-    are reused and named in the report, or retrained with `overwrite`."""
+    are reused and named in the report, or retrained with `overwrite`.
+
+    `budgets` (rate-distortion curves): a list of sizes, each a fraction of the first model's stored size at its
+    count ('25%', 0.25) or a size in bytes ('200kB', '1.5MB', 200000). The first model is trained at its count,
+    then every model at every budget with as many primitives as its packed file can hold within it
+    (budget_count), in out/runs/<label>@<count>; rate.png and the report's rate table plot PSNR, LPIPS and FPS
+    against stored bytes. `store`: the precision every model is stored (and fine-tuned) at (packing.PRECISIONS)."""
     from .data import load_scene
     from .zoo import make_config
 
@@ -118,19 +124,27 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     num_primitives = num_primitives or (preset.num_primitives if preset else None)
     base_cfg = TrainConfig(iterations=iterations, num_primitives=num_primitives, densify=densify, strategy=strategy,
                            seed=seed, backend=backend, antialias=antialias,
-                           random_downscale=random_downscale).validate()
-    if equal_bytes and densify:
-        raise SplatzooError("--equal-bytes compares models at fixed primitive counts: leave densification off")
+                           random_downscale=random_downscale, store=store).validate()
+    if (equal_bytes or budgets) and densify:
+        raise SplatzooError("--equal-bytes and --budgets compare models at fixed primitive counts: leave "
+                            "densification off")
+    if equal_bytes and budgets:
+        raise SplatzooError("--equal-bytes is the single budget of the first model's size, one point of what "
+                            "--budgets draws: give one of them")
+    sizes = parse_budgets(budgets) if budgets else []
     run_dirs = {c.label: Run(out / "runs" / _safe(c.label)) for c in choices}
     for run in run_dirs.values():
         if run.status == "foreign":
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
 
-    def plan(c: ModelChoice, count: int):
-        """The run of `c` with `count` primitives: new, finished (reuse), started or interrupted (resume), or
-        overwrite; a run made with other settings is an error without `overwrite`, never a row of old numbers."""
-        run, cfg = run_dirs[c.label], replace(base_cfg, num_primitives=count)
+    def plan(c: ModelChoice, count: int, run: Run | None = None):
+        """The run of `c` with `count` primitives (in `run`, default the model's own folder): new, finished
+        (reuse), started or interrupted (resume), or overwrite; a run made with other settings is an error without
+        `overwrite`, never a row of old numbers."""
+        run, cfg = run or run_dirs[c.label], replace(base_cfg, num_primitives=count)
         status = run.status
+        if status == "foreign":
+            raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
         if status != "new":
             record = run.record()
             diffs = differences(record, make_record(scene, scene_options, c.model, model_configs[c.label], cfg))
@@ -149,8 +163,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             status = "overwrite" if diffs else status
         return cfg, status
 
-    def train_or_reuse(c: ModelChoice, cfg: TrainConfig, status: str) -> dict:
-        run = run_dirs[c.label]
+    def train_or_reuse(c: ModelChoice, cfg: TrainConfig, status: str, run: Run | None = None) -> dict:
+        run = run or run_dirs[c.label]
         if status == "finished":  # trained earlier with these settings: reuse
             return run.metrics() or evaluate_run(run.path, backend=backend)
         return train(scene, c.model, c.options, cfg, run.path, resume=status in ("started", "interrupted"),
@@ -159,7 +173,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
 
     # equal count: decide every run before training any. Equal bytes: the first model sets the budget, then the
     # others are decided.
-    phases = [choices[:1], choices[1:]] if equal_bytes else [choices]
+    phases = [choices[:1], choices[1:]] if equal_bytes else [choices[:1]] if sizes else [choices]
     counts, runs, budget, other_code = {}, {}, None, []
     for phase in phases:
         for c in phase:
@@ -169,18 +183,118 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             runs[c.label] = train_or_reuse(c, *planned[c.label])
         if equal_bytes:
             budget = int(runs[choices[0].label]["size_bytes"])
+    rate = []
+    if sizes:  # every model at every budget: the rate-distortion curves
+        first = choices[0]
+        reference = stored_size_of(runs[first.label], run_dirs[first.label], store)
+        reference_count = run_dirs[first.label].record()["train"]["num_primitives"] or scene.points.shape[0]
+        like = run_dirs[first.label].model()  # every run's file records the same render settings
+        planned_runs = []  # every run decided (and refused, if it must be) before any trains
+        for text, kind, value in sizes:
+            target = int(value * reference) if kind == "fraction" else int(value)
+            for c in choices:
+                count = budget_count(c, target, store, like)
+                if count < 1:
+                    raise SplatzooError(f"budget {text} ({target:,} bytes) holds no primitive of {c.label} (one costs "
+                                        f"{stored_cost(c, 1, store, like):,} bytes stored as {store}); give a larger "
+                                        "budget")
+                same = c is first and count == reference_count
+                run = run_dirs[c.label] if same else Run(out / "runs" / f"{_safe(c.label)}@{count}")
+                planned_runs.append((text, target, c, count, run, None if same else plan(c, count, run)))
+        for text, target, c, count, run, planned in planned_runs:
+            metrics = runs[c.label] if planned is None else train_or_reuse(c, *planned, run=run)
+            rate.append({"model": c.label, "budget": text, "budget_bytes": target, "num_primitives": count,
+                         "run": run.path.name, "stored_bytes": stored_size_of(metrics, run, store),
+                         **{k: metrics.get(k) for k in ("size_bytes", "psnr", "ssim", "lpips", "fps",
+                                                        "float32_psnr")}})
     settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
                 "num_primitives": num_primitives, "densify": densify, "strategy": strategy, "seed": seed,
-                "backend": runs[choices[-1].label].get("backend", backend), "scene_options": scene_options,
+                "backend": runs[choices[0].label].get("backend", backend), "scene_options": scene_options,
                 "models": labels, "equal_bytes": equal_bytes, "antialias": antialias,
                 "random_downscale": random_downscale, "primitives": counts, "trained_by_other_code": other_code,
-                "train_views": len(scene.train), "test_views": len(scene.test)}
+                "train_views": len(scene.train), "test_views": len(scene.test), "store": store,
+                "budgets": [text for text, _, _ in sizes]}
     report = {"runs": runs, "settings": settings}
+    shown = run_dirs
+    if rate:
+        report["rate"] = rate
+        largest = max(r["budget_bytes"] for r in rate)  # the pictures show every model at the largest budget
+        shown = {r["model"]: Run(out / "runs" / r["run"]) for r in rate if r["budget_bytes"] == largest}
     write_json(out / "compare.json", report)
     write_text(out / "report.md", report_markdown(report))
-    plot_convergence(run_dirs, out / "convergence.png")
-    plot_comparison(scene, run_dirs, out / "compare.png", backend=settings["backend"])
+    if rate:
+        plot_rate(rate, out / "rate.png", title=f"{scene.name}, stored as {store}")
+    plot_convergence(shown, out / "convergence.png")
+    plot_comparison(scene, shown, out / "compare.png", backend=settings["backend"])
     return report
+
+
+_UNITS = {"b": 1, "kb": 1e3, "mb": 1e6, "gb": 1e9, "kib": 1024, "mib": 1024**2, "gib": 1024**3}
+
+
+def parse_budgets(budgets) -> list[tuple[str, str, float]]:
+    """'5%,25%,100%' or ['200kB', 0.25, 120000] -> [(text, 'fraction' | 'bytes', value)] in the order given. A
+    fraction (a percentage, or a float) is of the first model's stored size at its count; a number with a unit (B,
+    kB, MB, GB, KiB, MiB, GiB) or a whole number is bytes."""
+    import re
+
+    items = [t for t in budgets.split(",") if t.strip()] if isinstance(budgets, str) else list(budgets)
+    out = []
+    for item in items:
+        if isinstance(item, (int, float)) and not isinstance(item, bool):
+            text, kind, value = (f"{100 * item:g}%", "fraction", float(item)) if isinstance(item, float) else \
+                (f"{item}B", "bytes", float(item))
+        else:
+            text = str(item).strip()
+            m = re.fullmatch(r"([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(%|[kKmMgG]i?[bB]|[bB])?", text)
+            if not m:
+                raise SplatzooError(f"--budgets: {text!r} is not a budget; give fractions of the first model's size "
+                                    "(5%,25%,100%) or sizes (200kB, 1.5MB, 120000), separated by commas")
+            number, unit = float(m.group(1)), (m.group(2) or "b").lower()
+            kind, value = ("fraction", number / 100) if unit == "%" else ("bytes", number * _UNITS[unit])
+        if not (math.isfinite(value) and value > 0) or (kind == "fraction" and value > 100):
+            raise SplatzooError(f"--budgets: {text!r} must be a positive size (a fraction up to 10000%)")
+        out.append((text, kind, value))
+    if not out:
+        raise SplatzooError("--budgets: name at least one budget, such as 5%,25%,100%")
+    if len({t for t, _, _ in out}) != len(out):
+        raise SplatzooError(f"--budgets: each budget once, got {budgets}")
+    return out
+
+
+def stored_cost(choice: ModelChoice, count: int, store: str, like=None) -> int:
+    """The stored size of `choice` with `count` primitives (as trained from the start: every wave present), with the
+    render settings of the model `like` (a trained run's: its file records them too)."""
+    from .zoo import create_model, stored_bytes
+
+    g = torch.Generator().manual_seed(0)
+    model = create_model(choice.model, torch.rand(count, 3, generator=g), torch.full((count, 3), 0.5),
+                         **choice.options)
+    if like is not None:
+        model.antialias, model.background = like.antialias, like.background
+    return stored_bytes(model, store)
+
+
+def budget_count(choice: ModelChoice, budget: int, store: str, like=None) -> int:
+    """The most primitives of `choice` whose packed file at `store` fits in `budget` bytes (0 if not one)."""
+    one = stored_cost(choice, 1, store, like)
+    per = max(1, (stored_cost(choice, 1001, store, like) - one) // 1000)
+    n = max(0, (budget - one) // per + 1)
+    # the compressed header changes by a few bytes with n: settle on the exact count
+    while n > 0 and stored_cost(choice, n, store, like) > budget:
+        n -= 1
+    while stored_cost(choice, n + 1, store, like) <= budget:
+        n += 1
+    return n
+
+
+def stored_size_of(metrics: dict, run: Run, store: str) -> int:
+    """A finished run's stored size: from its metrics, or (evaluated before packed files) its model packed now."""
+    from .zoo import stored_bytes
+
+    if metrics.get("stored_bytes") is not None:
+        return int(metrics["stored_bytes"])
+    return stored_bytes(run.model(), store)
 
 
 def bytes_per_primitive(choice: ModelChoice) -> int:
@@ -262,9 +376,61 @@ def report_markdown(report: dict) -> str:
         lines.append(f"| {k} | {d['psnr']} | {d['ssim']} | {d['lpips']} | {ratio(get(k, 'fps'), get(first, 'fps'))} | "
                      f"{ratio(get(k, 'train_seconds'), get(first, 'train_seconds'))} | "
                      f"{ratio(get(k, 'size_bytes'), get(first, 'size_bytes'))} |")
+    if report.get("rate"):
+        lines += rate_markdown(report["rate"], s.get("store", "float32"))
     lines += ["", f"Metrics: PSNR {conv.get('psnr', '')}; SSIM {conv.get('ssim', '')}; LPIPS {conv.get('lpips', '')}.",
-              "Pictures: `compare.png` (ground truth, renders, surfels in random colours), `convergence.png`.", ""]
+              "Pictures: `compare.png` (ground truth, renders, surfels in random colours), `convergence.png`"
+              + (", `rate.png` (PSNR, LPIPS and FPS against stored bytes)." if report.get("rate") else "."), ""]
     return "\n".join(lines)
+
+
+def rate_markdown(rate: list[dict], store: str) -> list[str]:
+    """The rate table: each budget a row, each model its PSNR / LPIPS with its stored size and count; the best PSNR
+    of each budget in bold."""
+    models = list(dict.fromkeys(r["model"] for r in rate))
+    budgets = list(dict.fromkeys(r["budget"] for r in rate))
+    at = {(r["budget"], r["model"]): r for r in rate}
+    lines = ["", f"Rate: every model at every budget, stored as {store} (PSNR / LPIPS, stored kB, primitives):", "",
+             "| budget | " + " | ".join(models) + " |", "|---" * (len(models) + 1) + "|"]
+    for b in budgets:
+        row = [at[(b, m)] for m in models]
+        best = max(range(len(row)), key=lambda i: _num(row[i].get("psnr")) if math.isfinite(_num(row[i].get("psnr")))
+                   else -math.inf)
+        cells = []
+        for i, r in enumerate(row):
+            psnr = f"{_num(r.get('psnr')):.2f}"
+            cells.append(f"{f'**{psnr}**' if i == best else psnr} / {_num(r.get('lpips')):.4f}, "
+                         f"{r['stored_bytes'] / 1e3:.1f} kB, {r['num_primitives']}")
+        lines.append(f"| {b} ({row[0]['budget_bytes'] / 1e3:.1f} kB) | " + " | ".join(cells) + " |")
+    if store != "float32":
+        losses = [_num(r.get("float32_psnr")) - _num(r.get("psnr")) for r in rate]
+        losses = [x for x in losses if math.isfinite(x)]
+        if losses:
+            lines += ["", f"Storage at {store} cost {max(losses):+.2f} dB at most (mean {np.mean(losses):+.2f}) "
+                      "against the same runs' full-precision values."]
+    return lines
+
+
+def plot_rate(rate: list[dict], path, *, title: str = "") -> None:
+    """rate.png: PSNR, LPIPS and FPS against stored bytes, one curve per model."""
+    plt = _figure()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    for model in dict.fromkeys(r["model"] for r in rate):
+        pts = sorted((r for r in rate if r["model"] == model), key=lambda r: r["stored_bytes"])
+        kb = [r["stored_bytes"] / 1e3 for r in pts]
+        for ax, key in zip(axes, ("psnr", "lpips", "fps")):
+            ax.plot(kb, [_num(r.get(key)) for r in pts], marker="o", ms=4, label=model)
+    from matplotlib.ticker import ScalarFormatter
+
+    for ax, (label, better) in zip(axes, (("PSNR (dB)", "higher"), ("LPIPS", "lower"), ("FPS", "higher"))):
+        ax.set(xscale="log", xlabel="stored size (kB)", ylabel=label, title=f"{label}, {better} is better")
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title, y=1.03)
+    _save_figure(fig, Path(path))
+    plt.close(fig)
 
 
 def _read_log(run: Run) -> tuple[list, list, list, list]:

@@ -67,10 +67,12 @@ def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None
              iterations: int | None = None, lpips_net: str = LPIPS_NET, lpips_convention: str = LPIPS_CONVENTION,
              split: str = "test") -> dict:
     """metrics.json content: psnr, ssim, lpips (means over the split's views), fps, train_seconds,
-    num_primitives, size_bytes, iterations, model, backend, and the metric conventions used; object_alpha, the mean
-    rendered alpha over the pixels inside the views' masks (None without masks): how opaque the object's surfaces
-    are, which a viewer with another background shows."""
+    num_primitives, size_bytes (its parameters as float32), stored_bytes and precision (the size of its packed file
+    at its precision), iterations, model, backend, and the metric conventions used; object_alpha, the mean rendered
+    alpha over the pixels inside the views' masks (None without masks): how opaque the object's surfaces are, which a
+    viewer with another background shows."""
     from .metrics import lpips, psnr, ssim
+    from .zoo import stored_bytes
 
     backend = resolve_backend(backend, _device(model))
     views = scene.test if split == "test" and scene.test else scene.train
@@ -94,6 +96,7 @@ def evaluate(model, scene, *, backend: str = "auto", train_seconds: float | None
         "ssim": float(np.mean(ss)), "lpips": float(np.mean(ls)),
         "fps": measure_fps(model, [v.camera for v in views], scene.background, backend),
         "train_seconds": train_seconds, "num_primitives": model.num_primitives, "size_bytes": model.size_bytes(),
+        "stored_bytes": stored_bytes(model), "precision": model.precision,
         "iterations": iterations, "model": model.name, "backend": backend, "split": used, "views": len(views),
         "object_alpha": covered / inside if inside else None,
         **(model.summary() if hasattr(model, "summary") else {}),

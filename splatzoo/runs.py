@@ -36,6 +36,7 @@ import torch
 from .errors import SplatzooError
 from .io import json_line, read_json, read_torch, torch_save, write_json, write_text
 from .training import TrainConfig, Trainer
+from .training.trainer import test_psnr
 
 RUN_FORMAT = 1
 LOCK_NAME = ".splatzoo.lock"
@@ -257,6 +258,7 @@ class Run:
         self.config_path = self.path / "config.json"
         self.checkpoint_path = self.path / "checkpoint.pt"
         self.model_path = self.path / "model.pt"
+        self.stored_model_path = self.path / "model.szp"  # the packed file at the run's storage precision
         self.log_path = self.path / "train_log.jsonl"
         self.metrics_path = self.path / "metrics.json"
         self.renders_dir = self.path / "renders"
@@ -579,6 +581,9 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     out = Run(out or Path("runs") / (model or "gabor"))
     from .training.distributed import launched_world
 
+    if isinstance(config, TrainConfig):  # a value no run can use is refused before the run folder is made
+        config.validate()
+
     if resume and not out.path.is_dir():  # before the lock, which would make the folder
         raise SplatzooError(f"cannot resume: {out.path} holds no run (no checkpoint); start it without --resume")
     world = launched_world()
@@ -884,18 +889,29 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     finally:
         bar.close()
     metrics = {}
+    net = trainer.net
     if stop == cfg.iterations and writer:
-        from .zoo import save_model
+        from .zoo import save_model, stored_copy
 
-        save_model(trainer.net, run.model_path)
+        # the model is what its packed file (model.szp, at the run's --store precision) loads back as; model.pt holds
+        # the same values as a torch file. The full-precision values' test PSNR says what the storage cost
+        trained = net
+        trained.precision = cfg.store
+        save_model(trained, run.stored_model_path)
+        net = stored_copy(trained, cfg.store) if cfg.store != "float32" else trained
+        save_model(net, run.model_path)
         if evaluate_at_end:
             try:
-                metrics = _evaluate_into(run, trainer.net, scene, backend, train_seconds=trainer.train_seconds,
-                                         iterations=cfg.iterations)
+                extra = ({"float32_psnr": test_psnr(trained, scene, backend, max_views=len(scene.test))}
+                         if net is not trained and scene.test else {})
+                metrics = {**_evaluate_into(run, net, scene, backend, train_seconds=trainer.train_seconds,
+                                            iterations=cfg.iterations), **extra}
+                if extra:
+                    run.write_metrics(metrics)
             except KeyboardInterrupt:
                 raise TrainingInterrupted(f"training finished ({run.model_path} written) but its evaluation was "
                                           f"interrupted; evaluate with: splatzoo eval {run.path}", 130) from None
-    return TrainResult(run.path, trainer.net, metrics)
+    return TrainResult(run.path, net, metrics)
 
 
 # --- several processes -------------------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """The model zoo API: list, create, save and load models by name."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import typing
@@ -9,11 +10,12 @@ from pathlib import Path
 import torch
 
 from .errors import SplatzooError
-from .io import read_torch, torch_save
+from .io import atomic_path, read_torch, torch_save
 from .models.base import ModelOptionError, SplatModel
+from .packing import PRECISIONS
 from .registry import MODELS, ModelSpec
 
-_MODEL_FILE_FIX = "pass a .pt file written by splatzoo (run/model.pt or run/checkpoint.pt)"
+_MODEL_FILE_FIX = "pass a .pt or .szp file written by splatzoo (run/model.pt, run/model.szp or run/checkpoint.pt)"
 _BOOLS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
 
 
@@ -96,8 +98,54 @@ def create_model(name: str, points=None, colors=None, *, seed: int = 0, **option
 
 
 def save_model(model: SplatModel, path) -> None:
-    """Write the model (name, resolved config, parameters) atomically."""
-    torch_save(model.checkpoint(), path)
+    """Write the model (name, resolved config, parameters) atomically: a packed file at the model's precision when
+    the name ends in .szp (splatzoo.packing), else a torch file of float32 values."""
+    from .packing import SUFFIX, pack_checkpoint
+
+    if Path(path).suffix == SUFFIX:
+        data = pack_checkpoint(model.checkpoint(), model.precision)
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(data)
+    else:
+        torch_save(model.checkpoint(), path)
+
+
+def stored_bytes(model: SplatModel, precision: str | None = None) -> int:
+    """The size of the model's packed file at `precision` (default: its own): what the model costs to store."""
+    from .packing import pack_checkpoint
+
+    return len(pack_checkpoint(model.checkpoint(), precision or model.precision))
+
+
+@contextlib.contextmanager
+def stored_values(model: SplatModel, precision: str):
+    """Inside the block the model's parameters hold the values its packed file at `precision` loads back as; after
+    it, the values they held before (edits made to them inside are lost). A gradient taken inside is the gradient at
+    the stored values, applied afterwards to the full-precision ones: quantisation-aware training with the
+    straight-through estimator."""
+    stored = dict(stored_copy(model, precision).named_parameters())
+    params = dict(model.named_parameters())
+    if any(stored[k].shape != p.shape for k, p in params.items()):
+        raise SplatzooError(f"{model.name}: its stored layout does not load back in the shape it trains in; it cannot "
+                            f"be trained at precision {precision}")
+    kept = {k: p.data for k, p in params.items()}
+    for k, p in params.items():
+        p.data = stored[k].data
+    try:
+        yield model
+    finally:
+        for k, p in params.items():
+            p.data = kept[k]
+
+
+def stored_copy(model: SplatModel, precision: str) -> SplatModel:
+    """The model as its packed file at `precision` loads back (a new model; `precision` recorded in it)."""
+    from .packing import check_precision, quantise_state
+
+    ck = model.checkpoint()
+    ck["state"] = quantise_state(ck["state"], check_precision(precision))
+    ck["precision"] = precision
+    return model_from_checkpoint(ck).to(next(model.parameters()).device)
 
 
 # --- loading ----------------------------------------------------------------------------------------------------
@@ -185,6 +233,9 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     antialias = ckpt.get("antialias", False)
     if not isinstance(antialias, bool):
         raise fail(f"'antialias' must be true or false, found {_brief(antialias)}")
+    precision = ckpt.get("precision", "float32")
+    if precision not in PRECISIONS:
+        raise fail(f"'precision' must be one of {', '.join(PRECISIONS)}, found {_brief(precision)}")
     background = ckpt.get("background")
     if background is not None:
         ok = isinstance(background, (list, tuple)) and len(background) == 3 and all(
@@ -246,6 +297,7 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     model.name = name
     model.antialias = antialias
     model.background = background
+    model.precision = precision
     return model
 
 
@@ -259,7 +311,11 @@ def model_from_checkpoint(ckpt: dict) -> SplatModel:
 def load_model(path) -> SplatModel:
     """Load a model written by save_model (or the "model" entry of a training checkpoint). The file is read with
     weights_only: a crafted file cannot run code, it is refused."""
+    from .packing import SUFFIX, is_packed, read_packed
+
     path = Path(path)
+    if path.suffix == SUFFIX or is_packed(path):
+        return _model_from_checkpoint(read_packed(path), f"packed model {path}", _MODEL_FILE_FIX)
     ckpt = read_torch(path, "model file", _MODEL_FILE_FIX)
     if isinstance(ckpt, dict) and "state" not in ckpt and isinstance(ckpt.get("model"), dict):
         ckpt = ckpt["model"]  # a training checkpoint: the model is one entry of it

@@ -47,6 +47,9 @@ class SplatModel(nn.Module):
     # the colour [3] behind the surfels that the model was trained over (the photos' own backdrop), the default of
     # render(); None: black (a model trained over random colours, or made outside training). Kept in the checkpoint
     background: tuple[float, float, float] | None = None
+    # the precision the model is stored at (packing.PRECISIONS): a run trained with --store 8bit holds the values its
+    # packed file loads back as, and its stored size is that file's. Kept in the checkpoint
+    precision: str = "float32"
     # the densification strategy a run uses when its config says "auto" (TrainConfig.strategy): "adc", "mcmc" or
     # "frequency"
     densify_strategy: str = "adc"
@@ -226,6 +229,8 @@ class SplatModel(nn.Module):
             ck["antialias"] = True
         if self.background is not None:  # absent means black
             ck["background"] = [float(c) for c in self.background]
+        if self.precision != "float32":  # absent means as trained
+            ck["precision"] = self.precision
         return ck
 
     def load_checkpoint_state(self, state: dict) -> None:

@@ -4,6 +4,7 @@ splatzoo.runs (`splatzoo.runs.train`).
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -14,8 +15,9 @@ import torch
 
 from ..errors import SplatzooError
 from ..evaluate import area_resize
+from ..packing import PRECISIONS
 from ..types import Camera, RenderOutput
-from ..zoo import create_model, model_from_checkpoint
+from ..zoo import create_model, model_from_checkpoint, stored_values
 from . import frequency, mcmc
 from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .distributed import Comm
@@ -125,6 +127,13 @@ class TrainConfig:
     random_downscale: float = field(default=0.0, metadata={
         "help": "fraction of training views rendered at a random smaller scale (1/2 or 1/4, keeping at least 64 "
                 "px) and compared with the area-averaged image (multi-scale training; meant for --antialias)"})
+    store: str = field(default="float32", metadata={
+        "help": "the precision the model is stored at: float32, float16 or 8bit (positions at 16 bits, other values "
+                "8 bits over each column's range); the last --store-finetune of the run trains through the stored "
+                "values, and the run's model and numbers are the stored model's"})
+    store_finetune: float = field(default=0.1, metadata={
+        "help": "fraction of the run, at its end, that trains through the stored values (quantisation-aware; with "
+                "--store below float32)"})
     log_every: int = 10
 
     # what a stored record written before an option's default changed meant where it lacks the key: runs from
@@ -144,6 +153,10 @@ class TrainConfig:
         if self.random_downscale > 1:
             raise SplatzooError(f"--random-downscale is a fraction of the training views, 0 to 1; got "
                                 f"{self.random_downscale}")
+        if self.store not in PRECISIONS:
+            raise SplatzooError(f"--store must be one of {', '.join(PRECISIONS)}, got {self.store!r}")
+        if self.store_finetune > 1:
+            raise SplatzooError(f"--store-finetune is a fraction of the run, 0 to 1; got {self.store_finetune}")
         if self.strategy not in ("auto",) + STRATEGIES:
             raise SplatzooError(f"--strategy must be one of auto, {', '.join(STRATEGIES)}, got {self.strategy!r}")
         for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every", "batch_size", "nproc",
@@ -162,6 +175,10 @@ class TrainConfig:
     def at(self, reference_iteration: int) -> int:
         """A schedule point stated for 30k iterations, scaled to this run's length."""
         return max(1, round(reference_iteration * self.iterations / REFERENCE_ITERATIONS))
+
+    def trains_stored(self, step: int) -> bool:
+        """Whether `step` renders the model through its stored values (the end of a run with --store)."""
+        return self.store != "float32" and step > self.iterations * (1 - self.store_finetune)
 
     @property
     def views_per_step(self) -> int:
@@ -508,7 +525,8 @@ class Trainer:
             if g.get("name") == "means":
                 g["lr"] = _position_lr(cfg, step, scene.extent) * self.lr_scale
         track = self.densify_on and self.strategy == "adc" and step <= self.d_until
-        loss, l_photo, render, target, error = self._backward(mine, step, track)
+        with stored_values(net, cfg.store) if cfg.trains_stored(step) else contextlib.nullcontext():
+            loss, l_photo, render, target, error = self._backward(mine, step, track)
         # one read of the step's numbers (each read makes a GPU wait), and the divergence check on it
         loss_value, photo_value, error = torch.stack([loss.detach(), l_photo.detach(), error.detach()]).tolist()
         if not math.isfinite(loss_value):

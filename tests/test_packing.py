@@ -1,0 +1,235 @@
+"""Models stored at reduced precision (.szp packed files): what a file loads back as is exactly what training and
+evaluation used, sizes are the files' own, quantisation stays within its step, budgets are never exceeded, and a
+damaged or crafted packed file is a named error."""
+import json
+import struct
+import zlib
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from splatzoo import create_model, load_model, save_model
+from splatzoo.cli import app
+from splatzoo.compare import ModelChoice, budget_count, parse_budgets, stored_cost
+from splatzoo.errors import SplatzooError
+from splatzoo.packing import PRECISIONS, pack_checkpoint, quantise_tensor, unpack_checkpoint
+from splatzoo.registry import MODELS
+from splatzoo.zoo import stored_bytes, stored_copy, stored_values
+
+BUILTINS = [n for n in MODELS.names() if MODELS.get(n).cls.__module__.startswith("splatzoo.")]
+
+
+def trained_looking(name, n=40, seed=0, **options):
+    """A model whose every parameter is off its initial value (so each column has a range to quantise)."""
+    g = torch.Generator().manual_seed(seed)
+    model = create_model(name, torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g), **options)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=g))
+    if getattr(model, "adaptive", False):  # some surfels wave-less, the rest with a few waves: the packed layout
+        model.prune_waves(float(model.wave_weights.detach().abs().median()))
+    model.antialias, model.background = True, (1.0, 1.0, 1.0)
+    return model
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("name", BUILTINS)
+def test_the_file_loads_back_as_the_stored_copy(name, precision, tmp_path):
+    model = trained_looking(name)
+    model.precision = precision
+    path = tmp_path / "m.szp"
+    save_model(model, path)
+    back, expected = load_model(path), stored_copy(model, precision)
+    assert path.stat().st_size == stored_bytes(model) == stored_bytes(model, precision)
+    assert back.precision == precision and back.antialias and back.background == (1.0, 1.0, 1.0)
+    assert back.state_dict().keys() == model.state_dict().keys()
+    for k, v in expected.state_dict().items():
+        assert torch.equal(back.state_dict()[k], v), k
+    if precision == "float32":
+        for k, v in model.state_dict().items():
+            assert torch.equal(back.state_dict()[k], v), k
+    # packed again, stored values move by float32 rounding at most
+    again = stored_copy(back, precision)
+    for k, v in back.state_dict().items():
+        if v.is_floating_point():
+            assert torch.allclose(again.state_dict()[k], v, rtol=1e-6, atol=1e-6), k
+        else:
+            assert torch.equal(again.state_dict()[k], v), k
+
+
+def test_sizes_per_precision():
+    """2dgs stores 13 numbers a surfel: 52 bytes as float32, 26 as float16 (positions at 16 bits: 6 bytes), 16 at
+    8 bits (positions 6, scales 2, rotation 4, opacity 1, colour 3); the header is shared."""
+    per = {}
+    for precision in PRECISIONS:   # the compressed header may differ by a byte or two
+        per[precision] = (stored_cost(ModelChoice("2dgs", "2dgs"), 1100, precision) -
+                          stored_cost(ModelChoice("2dgs", "2dgs"), 100, precision)) / 1000
+    assert per == pytest.approx({"float32": 52, "float16": 26, "8bit": 16}, abs=0.01)
+    assert stored_cost(ModelChoice("2dgs", "2dgs"), 1, "8bit") < 350   # the header, compressed
+    model = trained_looking("2dgs", n=1000)
+    assert stored_bytes(model, "8bit") < 0.32 * stored_bytes(model, "float32")
+
+
+def test_quantisation_error_is_within_half_a_step():
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(1000, 3, generator=g) * torch.tensor([1.0, 10.0, 1e-3])
+    for name, bits in (("means", 16), ("sh_dc", 8)):
+        q = quantise_tensor(name, x, "8bit")
+        step = (x.max(0).values - x.min(0).values) / (2**bits - 1)
+        assert ((q - x).abs() <= step / 2 * 1.0001 + 1e-7).all(), name
+        assert q.dtype == x.dtype and q.shape == x.shape
+    assert torch.equal(quantise_tensor("sh_dc", x, "float32"), x)
+    half = quantise_tensor("sh_dc", x, "float16")
+    assert torch.equal(half, x.half().float())
+    assert torch.equal(quantise_tensor("wave_counts", torch.arange(5, dtype=torch.int32), "8bit"),
+                       torch.arange(5, dtype=torch.int32))
+    const = torch.full((7, 2), 0.25)   # a column with no range: stored exactly
+    assert torch.equal(quantise_tensor("sh_dc", const, "8bit"), const)
+
+
+def test_training_through_stored_values_restores_and_differentiates():
+    model = trained_looking("gabor")
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    stored = stored_copy(model, "8bit")
+    with stored_values(model, "8bit"):
+        for k, v in stored.state_dict().items():
+            assert torch.equal(model.state_dict()[k], v), k
+        loss = sum((p ** 2).sum() for p in model.parameters())
+        loss.backward()
+    for k, v in before.items():
+        assert torch.equal(model.state_dict()[k], v), k   # the full-precision values are back ...
+    for name, p in model.named_parameters():   # ... with the gradient taken at the stored ones (straight through)
+        assert torch.allclose(p.grad, 2 * dict(stored.named_parameters())[name].detach()), name
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("name", ["2dgs", "gabor", "neural-gabor", "textured"])
+def test_budget_count_never_exceeds_the_budget(name, precision):
+    choice = ModelChoice(name, name)
+    for budget in (3_000, 20_000, 104_000):
+        n = budget_count(choice, budget, precision)
+        assert n >= 1
+        assert stored_cost(choice, n, precision) <= budget < stored_cost(choice, n + 1, precision)
+    assert budget_count(choice, 10, precision) == 0
+
+
+def test_parse_budgets():
+    assert parse_budgets("5%,25%, 100%") == [("5%", "fraction", 0.05), ("25%", "fraction", 0.25),
+                                             ("100%", "fraction", 1.0)]
+    assert parse_budgets("200kB,1.5MB,120000,2KiB") == [("200kB", "bytes", 200e3), ("1.5MB", "bytes", 1.5e6),
+                                                        ("120000", "bytes", 120000.0), ("2KiB", "bytes", 2048.0)]
+    assert parse_budgets([0.25, 5000]) == [("25%", "fraction", 0.25), ("5000B", "bytes", 5000.0)]
+    for bad, message in (("5%,x", "'x' is not a budget"), ("0%", "positive"), ("-5%", "not a budget"),
+                         ("5%,5%", "each budget once"), ("", "at least one"), ("1e999MB", "positive")):
+        with pytest.raises(SplatzooError, match=message):
+            parse_budgets(bad)
+
+
+# --- damaged and crafted packed files ----------------------------------------------------------------------------
+
+def _packed(name="gabor"):
+    return pack_checkpoint(trained_looking(name).checkpoint(), "8bit")
+
+
+def _with_header(data: bytes, edit) -> bytes:
+    (length,) = struct.unpack_from("<I", data, 4)
+    header = json.loads(zlib.decompress(data[8:8 + length]))
+    edit(header)
+    text = zlib.compress(json.dumps(header).encode())
+    return data[:4] + struct.pack("<I", len(text)) + text + data[8 + length:]
+
+
+BOMB = zlib.compress(b" " * 2**25, 9)   # a 32 MB header in 32 kB
+
+
+@pytest.mark.parametrize("damage,message", [
+    (lambda d: d[:3], "no SZPK header"),
+    (lambda d: b"XXXX" + d[4:], "no SZPK header"),
+    (lambda d: d[:4] + struct.pack("<I", 10**9) + d[8:], "header claims"),
+    (lambda d: d[:4] + struct.pack("<I", 4) + b"{{{{" + d[12:], "not valid compressed JSON"),
+    (lambda d: d[:4] + struct.pack("<I", len(BOMB)) + BOMB + d[8:], "at most 16777216 bytes"),
+    (lambda d: d[:-5], "truncated"),
+    (lambda d: d + b"extra", "5 bytes follow the last tensor"),
+    (lambda d: _with_header(d, lambda h: h.update(version=99)), "format version 99"),
+    (lambda d: _with_header(d, lambda h: h.update(precision="4bit")), "unknown precision"),
+    (lambda d: _with_header(d, lambda h: h["tensors"][0].update(shape=[2**39, 2**39])), "invalid shape|truncated"),
+    (lambda d: _with_header(d, lambda h: h["tensors"][0].update(shape=[-1, 3])), "invalid shape"),
+    (lambda d: _with_header(d, lambda h: h["tensors"][0].update(dtype="object")), "unknown dtype"),
+    (lambda d: _with_header(d, lambda h: h["tensors"][0].update(encoding="zip")), "unknown encoding"),
+    (lambda d: _with_header(d, lambda h: h["tensors"].append(h["tensors"][0])), "appears twice"),
+    (lambda d: _with_header(d, lambda h: h.update(tensors="all")), "lists no tensors"),
+    (lambda d: _with_header(d, lambda h: h.update(model="nonexistent")), "nonexistent"),
+    (lambda d: _with_header(d, lambda h: h["config"].update(n_waves=-3)), "n_waves"),
+])
+def test_damaged_packed_files_are_named_errors(tmp_path, damage, message):
+    path = tmp_path / "bad.szp"
+    path.write_bytes(damage(_packed()))
+    with pytest.raises(SplatzooError, match=message) as e:
+        load_model(path)
+    assert "bad.szp" in str(e.value)
+
+
+def test_non_finite_values_in_a_packed_file_are_refused(tmp_path):
+    model = trained_looking("2dgs")
+    ck = model.checkpoint()
+    data = bytearray(pack_checkpoint(ck, "float32"))
+    (length,) = struct.unpack_from("<I", data, 4)
+    struct.pack_into("<f", data, 8 + length, float("nan"))   # the first value of the first tensor (means)
+    path = tmp_path / "nan.szp"
+    path.write_bytes(bytes(data))
+    with pytest.raises(SplatzooError, match="means has 1 non-finite"):
+        load_model(path)
+    assert unpack_checkpoint(pack_checkpoint(ck, "8bit"))["precision"] == "8bit"
+
+
+def test_a_run_trained_with_store_8bit(tmp_path):
+    """The run's model.pt and model.szp hold the same stored values; its metrics give both sizes, the stored one
+    that of model.szp, and the full-precision PSNR beside it; eval reads the .szp file."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    data = make_synthetic_scene("sweater", tmp_path / "data", views=6, width=32, height=32)
+    run = tmp_path / "run"
+    res = CliRunner().invoke(app, ["train", str(data), "--model", "gabor", "-i", "30", "--no-densify", "-n", "300",
+                                   "--store", "8bit", "--out", str(run)])
+    assert res.exit_code == 0, res.output
+    assert "stored as 8bit" in res.output
+    pt, szp = load_model(run / "model.pt"), load_model(run / "model.szp")
+    assert pt.precision == szp.precision == "8bit"
+    for k, v in pt.state_dict().items():
+        assert torch.allclose(szp.state_dict()[k], v, rtol=1e-6, atol=1e-6), k
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["stored_bytes"] == (run / "model.szp").stat().st_size
+    assert metrics["precision"] == "8bit" and metrics["size_bytes"] > 3 * metrics["stored_bytes"]
+    assert np.isfinite(metrics["float32_psnr"]) and abs(metrics["float32_psnr"] - metrics["psnr"]) < 1.0
+    res = CliRunner().invoke(app, ["eval", str(run / "model.szp"), "--data", str(data)])
+    assert res.exit_code == 0, res.output
+    res = CliRunner().invoke(app, ["train", str(data), "--store", "4bit", "--out", str(tmp_path / "r2")])
+    assert res.exit_code != 0 and "--store must be one of float32, float16, 8bit" in str(res.exception)
+    assert not (tmp_path / "r2").exists()
+
+
+def test_compare_budgets_trains_every_model_at_every_budget(tmp_path):
+    from splatzoo.compare import compare
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    data = make_synthetic_scene("sweater", tmp_path / "data", views=6, width=32, height=32)
+    out = tmp_path / "cmp"
+    report = compare(["2dgs", "gabor"], data, out, iterations=20, num_primitives=600, budgets="25%,100%",
+                     store="8bit", progress=False)
+    rate = report["rate"]
+    assert [(r["model"], r["budget"]) for r in rate] == [("2dgs", "25%"), ("gabor", "25%"), ("2dgs", "100%"),
+                                                         ("gabor", "100%")]
+    reference = report["runs"]["2dgs"]["stored_bytes"]
+    for r in rate:
+        assert r["stored_bytes"] <= r["budget_bytes"], r
+        assert r["stored_bytes"] == (out / "runs" / r["run"] / "model.szp").stat().st_size
+    assert rate[2]["run"] == "2dgs" and rate[2]["stored_bytes"] == reference   # the reference run, reused
+    assert rate[3]["num_primitives"] < rate[2]["num_primitives"]               # a gabor surfel costs more
+    assert (out / "rate.png").stat().st_size > 0 and "Rate: every model at every budget" in (
+        out / "report.md").read_text()
+    with pytest.raises(SplatzooError, match="holds no primitive"):
+        compare(["2dgs"], data, out, iterations=20, num_primitives=600, budgets="10B", store="8bit", progress=False)
+    with pytest.raises(SplatzooError, match="give one of them"):
+        compare(["2dgs"], data, out, iterations=20, budgets="5%", equal_bytes=True, progress=False)
