@@ -149,6 +149,33 @@ class SplatModel(nn.Module):
             else:
                 setattr(self, name, nn.Parameter(value.detach().clone().requires_grad_(True)))
 
+    def edit_primitives(self, optimizer: torch.optim.Optimizer | None, keep: torch.Tensor,
+                        new: dict[str, torch.Tensor] | None = None) -> None:
+        """Keep rows `keep` (bool [N]) of every per-primitive parameter and buffer and append rows `new[name]` (none:
+        only remove); Adam moments of kept rows survive, appended rows start at zero. What densification, relocation
+        and a byte budget edit the count with."""
+        params = self.per_primitive()
+        new = new or {name: p.detach()[:0] for name, p in params.items()}
+        by_id = {id(p): name for name, p in params.items()}
+        replacements = {name: torch.cat([p.detach()[keep], new[name].to(p)]) for name, p in params.items()}
+        old_states = {}
+        for group in (optimizer.param_groups if optimizer is not None else ()):
+            for i, p in enumerate(group["params"]):
+                name = by_id.get(id(p))
+                if name is not None:
+                    old_states[name] = (group, i, optimizer.state.pop(p, None))
+        self.replace_parameters(replacements)
+        fresh = self.per_primitive()
+        for name, (group, i, state) in old_states.items():
+            p = fresh[name]
+            group["params"][i] = p
+            if state:
+                n_new = new[name].shape[0]
+                for key in ("exp_avg", "exp_avg_sq"):
+                    if key in state:
+                        state[key] = torch.cat([state[key][keep], state[key].new_zeros(n_new, *state[key].shape[1:])])
+                optimizer.state[p] = state
+
     def swap_parameter(self, name: str, fn, optimizer: torch.optim.Optimizer | None = None) -> None:
         """Replace parameter `name` by fn(parameter) (any shape), applying fn to its Adam moments too, and point
         the optimizer at the new tensor. For edits along dimensions other than the primitive one."""

@@ -49,34 +49,6 @@ class DensifyStats:
         self.grad_sum, self.count = state["grad_sum"].clone(), state["count"].clone()
 
 
-def _edit_primitives(model: SurfelModel, optimizer: torch.optim.Optimizer, keep: torch.Tensor,
-                     new: dict[str, torch.Tensor]) -> None:
-    """Keep rows `keep` (bool [N]) of every per-primitive parameter and append rows `new[name]`; Adam moments
-    of kept rows survive, appended rows start at zero."""
-    params = model.per_primitive()
-    by_id = {id(p): name for name, p in params.items()}
-    replacements = {}
-    for name, p in params.items():
-        replacements[name] = torch.cat([p.detach()[keep], new[name].to(p)])
-    old_states = {}
-    for group in optimizer.param_groups:
-        for i, p in enumerate(group["params"]):
-            name = by_id.get(id(p))
-            if name is not None:
-                old_states[name] = (group, i, optimizer.state.pop(p, None))
-    model.replace_parameters(replacements)
-    fresh = model.per_primitive()
-    for name, (group, i, state) in old_states.items():
-        p = fresh[name]
-        group["params"][i] = p
-        if state:
-            n_new = new[name].shape[0]
-            for key in ("exp_avg", "exp_avg_sq"):
-                if key in state:
-                    state[key] = torch.cat([state[key][keep], state[key].new_zeros(n_new, *state[key].shape[1:])])
-            optimizer.state[p] = state
-
-
 SPLIT_SHRINK = 1.6  # a split child's scales are its parent's divided by this (2DGS)
 
 
@@ -129,7 +101,7 @@ def densify_and_prune(model: SurfelModel, optimizer, stats: DensifyStats, *, gra
     # never prune everything: an empty model cannot recover
     if not keep.any() and not any(v.shape[0] for v in new.values()):
         keep = torch.ones_like(keep)
-    _edit_primitives(model, optimizer, keep.cpu() if keep.device.type == "cpu" else keep, new)
+    model.edit_primitives(optimizer, keep.cpu() if keep.device.type == "cpu" else keep, new)
     n_new = model.num_primitives
     stats.grad_sum = torch.zeros(n_new)
     stats.count = torch.zeros(n_new)

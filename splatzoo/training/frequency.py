@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from ..errors import ShapeError
 from ..models.base import SurfelModel, inverse_sigmoid, restart_moments
 from ..types import SURFEL_FIELDS, Camera, Surfels
-from .densify import _edit_primitives, split_rows
+from .densify import split_rows
 
 # the release's bands, in normalised spatial frequency: radius = |f| / max |f| over the FFT grid (|f| in cycles per
 # pixel, so 1 is the grid's corner, sqrt(2) / 2 cycles per pixel); a band holds lo <= radius < hi
@@ -230,6 +230,6 @@ def densify_step(model: SurfelModel, optimizer: torch.optim.Optimizer, views: It
     keep_new = torch.ones_like(keep_new)
     if not keep.any() and not keep_new.any():  # never prune everything: an empty model cannot recover
         keep, keep_new = ~split, torch.ones_like(keep_new)
-    _edit_primitives(model, optimizer, keep, {k: v[keep_new] for k, v in new.items()})
+    model.edit_primitives(optimizer, keep, {k: v[keep_new] for k, v in new.items()})
     return {"cloned": int(clone.sum()), "split": int(split.sum()),
             "pruned": int((~keep).sum() - split.sum()) + int((~keep_new).sum()), "primitives": model.num_primitives}

@@ -94,7 +94,6 @@ def relocate_dead(model: SurfelModel, optimizer, generator: torch.Generator) -> 
 @torch.no_grad()
 def add_surfels(model: SurfelModel, optimizer, count: int, generator: torch.Generator) -> int:
     """Append `count` copies of live surfels (drawn by opacity), relocated as above; returns how many."""
-    from .densify import _edit_primitives
 
     opacity = model.effective_opacity()
     alive = (opacity > DEAD_OPACITY).nonzero().squeeze(1)
@@ -107,7 +106,7 @@ def add_surfels(model: SurfelModel, optimizer, count: int, generator: torch.Gene
     _reset_moments(optimizer, params, sources)
     new = {name: p.detach()[sources] for name, p in params.items()}
     keep = torch.ones(opacity.shape[0], dtype=torch.bool, device=opacity.device)
-    _edit_primitives(model, optimizer, keep, new)
+    model.edit_primitives(optimizer, keep, new)
     return count
 
 
