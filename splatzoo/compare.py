@@ -137,11 +137,11 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         if run.status == "foreign":
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
 
-    def plan(c: ModelChoice, count: int, run: Run | None = None):
-        """The run of `c` with `count` primitives (in `run`, default the model's own folder): new, finished
-        (reuse), started or interrupted (resume), or overwrite; a run made with other settings is an error without
-        `overwrite`, never a row of old numbers."""
-        run, cfg = run or run_dirs[c.label], replace(base_cfg, num_primitives=count)
+    def plan(c: ModelChoice, count: int, run: Run | None = None, max_bytes: int | None = None):
+        """The run of `c` with `count` primitives (in `run`, default the model's own folder; within `max_bytes`
+        stored): new, finished (reuse), started or interrupted (resume), or overwrite; a run made with other
+        settings is an error without `overwrite`, never a row of old numbers."""
+        run, cfg = run or run_dirs[c.label], replace(base_cfg, num_primitives=count, max_bytes=max_bytes)
         status = run.status
         if status == "foreign":
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
@@ -193,14 +193,14 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         for text, kind, value in sizes:
             target = int(value * reference) if kind == "fraction" else int(value)
             for c in choices:
-                count = budget_count(c, target, store, like)
+                count = budget_count(c, target, store, like)  # a model that sheds richness: as many as fit plain
                 if count < 1:
                     raise SplatzooError(f"budget {text} ({target:,} bytes) holds no primitive of {c.label} (one costs "
                                         f"{stored_cost(c, 1, store, like):,} bytes stored as {store}); give a larger "
                                         "budget")
                 same = c is first and count == reference_count
                 run = run_dirs[c.label] if same else Run(out / "runs" / f"{_safe(c.label)}@{count}")
-                planned_runs.append((text, target, c, count, run, None if same else plan(c, count, run)))
+                planned_runs.append((text, target, c, count, run, None if same else plan(c, count, run, target)))
         for text, target, c, count, run, planned in planned_runs:
             metrics = runs[c.label] if planned is None else train_or_reuse(c, *planned, run=run)
             rate.append({"model": c.label, "budget": text, "budget_bytes": target, "num_primitives": count,
@@ -263,8 +263,9 @@ def parse_budgets(budgets) -> list[tuple[str, str, float]]:
 
 
 def stored_cost(choice: ModelChoice, count: int, store: str, like=None) -> int:
-    """The stored size of `choice` with `count` primitives (as trained from the start: every wave present), with the
-    render settings of the model `like` (a trained run's: its file records them too)."""
+    """The smallest stored size of `choice` with `count` primitives: as trained from the start, less what it can
+    shed under a byte budget without losing primitives (SplatModel.shed_richness: a gabor-adaptive model's waves),
+    with the render settings of the model `like` (a trained run's: its file records them too)."""
     from .zoo import create_model, stored_bytes
 
     g = torch.Generator().manual_seed(0)
@@ -272,7 +273,7 @@ def stored_cost(choice: ModelChoice, count: int, store: str, like=None) -> int:
                          **choice.options)
     if like is not None:
         model.antialias, model.background = like.antialias, like.background
-    return stored_bytes(model, store)
+    return stored_bytes(model.shed_richness(), store)
 
 
 def budget_count(choice: ModelChoice, budget: int, store: str, like=None) -> int:

@@ -60,6 +60,13 @@ def encoding_for(name: str, tensor: torch.Tensor, precision: str) -> str:
     return "f16" if precision == "float16" else "u8"
 
 
+def value_bytes(name: str, tensor: torch.Tensor, precision: str) -> int:
+    """Bytes one value of tensor `name` takes in the packed file at `precision` (its column's minimum and step,
+    shared by every row, not counted)."""
+    encoding = encoding_for(name, tensor, precision)
+    return {"raw": tensor.element_size(), "f16": 2, "u8": 1, "u16": 2}[encoding]
+
+
 def _columns(array: np.ndarray) -> np.ndarray:
     """[rows, columns]: a per-primitive tensor's first dimension is its rows, the rest its columns."""
     return array.reshape(array.shape[0], -1) if array.ndim > 1 else array.reshape(-1, 1)

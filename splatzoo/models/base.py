@@ -36,6 +36,16 @@ def nearest_neighbour_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor
     return torch.from_numpy(dist[:, 1:].mean(1)).to(points)
 
 
+@dataclasses.dataclass
+class Shedding:
+    """One way to make a model smaller: `what` it removes, `preview(camera)` the Surfels it would leave (to render
+    and measure before choosing) and `apply()` that does it (keeping the optimizer pointing at the parameters)."""
+
+    what: str
+    preview: Any
+    apply: Any
+
+
 class SplatModel(nn.Module):
     """A primitive type. Subclasses define parameters in `__init__(config, num_primitives)` with first
     dimension num_primitives, initialise them in `init_from_points`, and implement `surfels(camera)`."""
@@ -217,6 +227,28 @@ class SplatModel(nn.Module):
         """Bytes of stored parameters (float32)."""
         return sum(p.numel() for p in self.parameters()) * 4
 
+    # --- a byte budget ----------------------------------------------------------------------------------------
+    def stored_row_bytes(self, precision: str) -> torch.Tensor:
+        """[N] the bytes each primitive's rows take in the packed file at `precision` (splatzoo.packing). A model
+        whose stored layout is not one row per primitive (packed waves) overrides it."""
+        from ..packing import value_bytes
+
+        n = self.num_primitives
+        per_row = sum(t[:1].numel() * value_bytes(name, t, precision) for name, t in self.per_primitive().items()
+                      if name not in self._non_persistent_buffers_set)
+        return torch.full((n,), float(per_row))
+
+    def shed_richness(self) -> "SplatModel":
+        """Drop, in place, whatever the model can shed without losing primitives under a byte budget (adaptive
+        waves: all of them), and return it: the smallest a model of this count can be. Nothing by default."""
+        return self
+
+    def shedding_options(self, nbytes: int, precision: str, optimizer=None) -> list[Shedding]:
+        """Ways to free at least `nbytes` of the model's stored size at `precision` (or as much as one way can),
+        each with a preview of what it would leave for the trainer to measure. By default: the weakest primitives
+        (SurfelModel); a model with optional richness adds its own."""
+        return []
+
     def summary(self) -> dict:
         """Model-specific numbers worth reporting next to the metrics (e.g. active waves); {} by default."""
         return {}
@@ -297,6 +329,22 @@ class SurfelModel(SplatModel):
         """[N] the most opacity each surfel can show anywhere (what decides whether it is alive): its peak opacity,
         times whatever else scales it inside the surfel (e.g. a texture's alpha)."""
         return torch.sigmoid(self.logit_opacity)
+
+    @torch.no_grad()
+    def shedding_options(self, nbytes: int, precision: str, optimizer=None) -> list[Shedding]:
+        """The weakest surfels (least opacity x area) whose stored rows add up to `nbytes`; one surfel stays."""
+        n = self.num_primitives
+        if n <= 1:
+            return []
+        value = self.effective_opacity().detach() * torch.exp(self.log_scales.detach()).prod(-1)
+        order = value.argsort()
+        held = self.stored_row_bytes(precision).to(value.device)[order].cumsum(0)
+        j = min(int((held < nbytes).sum()) + 1, n - 1)
+        keep = torch.ones(n, dtype=torch.bool, device=value.device)
+        keep[order[:j]] = False
+        kept = keep.nonzero().squeeze(1)
+        return [Shedding(f"{j} weakest surfels", lambda camera: self.surfels(camera).index(kept),
+                         lambda: self.edit_primitives(optimizer, keep))]
 
     def draws_nothing(self) -> str | None:
         from ..rasterizers.common import SETTINGS

@@ -425,8 +425,9 @@ class GaborModel(SurfelModel):
         return mean, torch.sigmoid(self.logit_opacity)[:, None] * std
 
     @torch.no_grad()
-    def prune_waves(self, threshold: float, optimizer=None) -> dict:
-        """Remove active waves whose contribution (wave_statistics) is below threshold, folding their mean colour
+    def prune_waves(self, threshold: float, optimizer=None, remove: torch.Tensor | None = None) -> dict:
+        """Remove active waves whose contribution (wave_statistics) is below threshold (or the slots `remove` [N,width]
+        marks), folding their mean colour
         into the base colour (color_base, or folded_weights for "paper"); repack each row (kept waves first, in
         orientation order) and trim the stored width to the largest count. A surfel left without waves becomes a 2DGS
         surfel (colour in color_base, or color_a for "paper"). Returns counts."""
@@ -437,7 +438,7 @@ class GaborModel(SurfelModel):
         n, width = w.shape
         on = self.active_slots()
         _, contribution = self.wave_statistics()
-        keep = on & (contribution >= threshold)
+        keep = on & (contribution >= threshold) if remove is None else on & ~remove
         removed = on & ~keep
         n_removed = int(removed.sum())
         if n_removed == 0:
@@ -475,6 +476,56 @@ class GaborModel(SurfelModel):
         self.wave_index = pack(self.wave_index)
         self.wave_counts = counts.to(torch.int32)
         return {"removed": n_removed, "active": int(counts.sum())}
+
+    # --- a byte budget ----------------------------------------------------------------------------------------
+    def _wave_bytes(self, precision: str) -> tuple[float, float]:
+        """(bytes of one stored wave, bytes a surfel stores only while it has a wave) at `precision`."""
+        from ..packing import value_bytes
+
+        wave = sum(value_bytes(n, getattr(self, n), precision) for n in self.wave_parameter_names)
+        waved = sum(getattr(self, n)[:1].numel() * value_bytes(n, getattr(self, n), precision)
+                    for n in self._waved_only)
+        return float(wave), float(waved)
+
+    def stored_row_bytes(self, precision: str) -> torch.Tensor:
+        """Adaptive waves: a surfel's plain rows, its bit mask, its stored waves and (while it has one) its wave
+        colour."""
+        if not self.adaptive:
+            return super().stored_row_bytes(precision)
+        from ..packing import value_bytes
+
+        skip = set(self.wave_parameter_names) | set(self._waved_only) | set(self.primitive_buffers)
+        plain = sum(t[:1].numel() * value_bytes(n, t, precision) for n, t in self.per_primitive().items()
+                    if n not in skip) + torch.empty((), dtype=self._mask_dtype()).element_size()
+        wave, waved = self._wave_bytes(precision)
+        counts = self.wave_counts.to(torch.float32)
+        return plain + counts * wave + (counts > 0).to(torch.float32) * waved
+
+    @torch.no_grad()
+    def shed_richness(self) -> "GaborModel":
+        if self.adaptive:
+            self.prune_waves(math.inf)
+        return self
+
+    @torch.no_grad()
+    def shedding_options(self, nbytes: int, precision: str, optimizer=None) -> list:
+        """Besides the weakest surfels: the faintest waves (wave_statistics) whose stored bytes add up to
+        `nbytes`, their mean colour kept, as prune_waves removes them."""
+        from .base import Shedding
+
+        options = super().shedding_options(nbytes, precision, optimizer)
+        on = self.active_slots() if self.adaptive else None
+        if on is None or not bool(on.any()):
+            return options
+        mean, contribution = self.wave_statistics()
+        slots = on.flatten().nonzero().squeeze(1)
+        wave, _ = self._wave_bytes(precision)
+        j = min(math.ceil(nbytes / wave), slots.numel())
+        faintest = slots[contribution.flatten()[slots].argsort()[:j]]  # exactly j, ties or not
+        removed = torch.zeros_like(on).flatten().index_fill_(0, faintest, True).view_as(on)
+        options.append(Shedding(f"{j} faintest waves", lambda camera: self._surfels_without(camera, removed, mean),
+                                lambda: self.prune_waves(0.0, optimizer, remove=removed)))
+        return options
 
     def summary(self) -> dict:
         n, k = self.wave_weights.shape[0], int(self.config.n_waves)

@@ -18,7 +18,7 @@ from ..evaluate import area_resize
 from ..packing import PRECISIONS
 from ..types import Camera, RenderOutput
 from ..zoo import create_model, model_from_checkpoint, stored_values
-from . import frequency, mcmc
+from . import budget, frequency, mcmc
 from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .distributed import Comm
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
@@ -134,6 +134,10 @@ class TrainConfig:
     store_finetune: float = field(default=0.1, metadata={
         "help": "fraction of the run, at its end, that trains through the stored values (quantisation-aware; with "
                 "--store below float32)"})
+    max_bytes: int | None = field(default=None, metadata={
+        "help": "a byte budget: the model ends the run no larger than this, stored at --store (the size of its "
+                "packed file). From half-way on it sheds what costs the training views least: its weakest surfels "
+                "or, for gabor-adaptive, its faintest waves (training/budget.py)"})
     log_every: int = 10
 
     # what a stored record written before an option's default changed meant where it lacks the key: runs from
@@ -160,7 +164,7 @@ class TrainConfig:
         if self.strategy not in ("auto",) + STRATEGIES:
             raise SplatzooError(f"--strategy must be one of auto, {', '.join(STRATEGIES)}, got {self.strategy!r}")
         for name in ("num_primitives", "max_primitives", "log_every", "checkpoint_every", "batch_size", "nproc",
-                     "densify_views"):
+                     "densify_views", "max_bytes"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise SplatzooError(f"training option {name} must be at least 1, got {getattr(self, name)}")
         if not 0 <= self.seed <= MAX_SEED:
@@ -361,6 +365,7 @@ class Trainer:
         # from the scene and the config alone, so that a resumed run has the same budget
         self.budget = cfg.max_primitives or densify_budget(scene, cfg.num_primitives or scene.points.shape[0])
         self._probe_views = None  # (camera, image) pairs of _probe_error, made on its first call
+        self.shedding_steps = set(budget.shedding_steps(cfg.iterations)) if cfg.max_bytes else set()
         self.net.probe_error = self._probe_error
 
     @classmethod
@@ -554,6 +559,11 @@ class Trainer:
             if step % self.reset_every == 0:
                 reset_opacity(net, optimizer)
         net.on_step(step, cfg, optimizer)  # model-specific edits (e.g. adaptive waves); no-op by default
+        if cfg.max_bytes and step in self.shedding_steps:
+            budget.enforce(net, optimizer, self._probe_error, cfg.max_bytes, cfg.store,
+                           budget.share_due(step, cfg.iterations))
+            if self.stats.grad_sum.shape[0] != net.num_primitives:  # surfels went: past densification, statistics
+                self.stats = DensifyStats(net.num_primitives)      # restart (a checkpoint holds one row each)
         self.train_seconds += time.perf_counter() - t0
         self.iteration = step
         out = {"loss": loss_value, "photo": photo_value, "records": []}

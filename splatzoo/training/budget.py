@@ -1,0 +1,60 @@
+"""A byte budget (TrainConfig.max_bytes): the model ends the run no larger than its budget, stored at the run's
+precision, by giving up whatever costs the images least.
+
+From FROM to UNTIL of the run, STEPS times, the model sheds a share of what it holds over the budget, so that it
+meets the budget at UNTIL and trains on without the shed parts for the rest of the run. Each time, every way the
+model offers (SplatModel.shedding_options: its weakest surfels; a gabor-adaptive model also its faintest waves) is
+rendered on the trainer's probe views, and the one that raises their error least is taken. So a model that starts
+as rich as its count allows keeps waves where they are worth more than the surfels they cost, and becomes a plain
+2DGS model of fewer surfels where they are not. After UNTIL the budget is only checked (nothing grows a model with
+a fixed count).
+"""
+from __future__ import annotations
+
+import math
+
+FROM = 0.5    # the first shedding, as a fraction of the run
+UNTIL = 0.85  # the model is within its budget from here on
+STEPS = 8     # sheddings between FROM and UNTIL
+MAX_ROUNDS = 12  # choices per shedding (each frees what one way can; the last ones finish a partial one)
+
+
+def shedding_steps(iterations: int) -> list[int]:
+    """The iterations at which the budget is enforced: STEPS between FROM and UNTIL, then the last one."""
+    first, last = FROM * iterations, UNTIL * iterations
+    steps = {max(1, math.ceil(first + (last - first) * i / (STEPS - 1))) for i in range(STEPS)}
+    return sorted(steps | {iterations})
+
+
+def stored_size(net, precision: str) -> int:
+    from ..packing import pack_checkpoint
+
+    return len(pack_checkpoint(net.checkpoint(), precision))
+
+
+def share_due(step: int, iterations: int) -> float:
+    """The share of the model's excess over the budget to shed at `step` (1 from UNTIL on)."""
+    steps = [s for s in shedding_steps(iterations) if s <= max(UNTIL * iterations, 1)] or [iterations]
+    later = sum(s >= step for s in steps)
+    return 1.0 if later <= 1 else 1.0 / later
+
+
+def enforce(net, optimizer, probe_error, max_bytes: int, precision: str, share: float) -> dict:
+    """Shed `share` of what the model holds over `max_bytes` (all of it when share is 1), choosing each time the way
+    whose preview raises the probe views' error least. Returns {"stored_bytes", "shed": [what, ...]}."""
+    size = stored_size(net, precision)
+    target = max_bytes + (1 - share) * max(0, size - max_bytes)
+    shed = []
+    for _ in range(MAX_ROUNDS):
+        if size <= target:
+            break
+        options = net.shedding_options(math.ceil(size - target), precision, optimizer)
+        if not options:
+            break
+        errors = [probe_error(o.preview) if probe_error is not None else 0.0 for o in options]
+        # the least error; on a tie the model's own richness (listed after its surfels) goes first
+        best = options[min(reversed(range(len(options))), key=errors.__getitem__)]
+        best.apply()
+        shed.append(best.what)
+        size = stored_size(net, precision)
+    return {"stored_bytes": size, "shed": shed}
