@@ -34,8 +34,11 @@ class BetaConfig(Surfel2DConfig):
     pass
 
 
-class BetaModel(Surfel2DModel):
-    def __init__(self, config: BetaConfig, num_primitives: int = 0):
+class BetaFalloff:
+    """The learned Beta falloff, added to a surfel model by listing this class before it: `class BetaModel(BetaFalloff,
+    Surfel2DModel)`; the model's colour stays its own."""
+
+    def __init__(self, config, num_primitives: int = 0):
         super().__init__(config, num_primitives)
         self.falloff_logit = nn.Parameter(torch.full((num_primitives,), FALLOFF_INIT_LOGIT))
 
@@ -55,3 +58,7 @@ class BetaModel(Surfel2DModel):
     def optim_groups(self, scene_extent: float) -> list[dict]:
         return super().optim_groups(scene_extent) + [
             {"name": "falloff_logit", "params": [self.falloff_logit], "lr": FALLOFF_LR}]
+
+
+class BetaModel(BetaFalloff, Surfel2DModel):
+    """2D surfels with one colour each (as 2dgs) and the learned Beta falloff."""
