@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from ..registry import ModelSpec, register_model
 from .beta import BetaConfig, BetaModel
+from .beta_gabor import BetaGaborConfig, BetaGaborModel
 from .gabor import AdaptiveGaborConfig, BaselineAConfig, BaselineBModel, BaselineCModel, GaborConfig, GaborModel
 from .neural_gabor import NeuralGaborConfig, NeuralGaborModel
 from .surfel2d import Surfel2DConfig, Surfel2DModel
@@ -20,6 +21,9 @@ register_model(ModelSpec("gabor", GaborModel, GaborConfig,
 register_model(ModelSpec("gabor-adaptive", GaborModel, AdaptiveGaborConfig,
                          "gabor with waves only where they pay: 8 orientations to start, late in training the waves "
                          "whose removal costs the training views under 0.02 dB go"))
+register_model(ModelSpec("beta-gabor", BetaGaborModel, BetaGaborConfig,
+                         "gabor-adaptive's waves (kept only where they pay) on surfels with beta's learned falloff; "
+                         "under a byte budget it sheds waves or its weakest surfels by measured cost"))
 register_model(ModelSpec("neural-gabor", NeuralGaborModel, NeuralGaborConfig,
                          "surfels whose colour is a tiny per-surfel sine network of (u, v) and the view direction, "
                          "with frequency-aware densification (Neural Gabor splatting)"))
