@@ -282,7 +282,19 @@ _STORE_FINETUNE = typer.Option(0.1, "--store-finetune", help="fraction of the ru
                                "stored values (with --store below float32)")
 _TRAIN_FIELDS = ("iterations", "backend", "seed", "densify", "strategy", "densify_views", "num_primitives",
                  "max_primitives", "lambda_dist", "lambda_normal", "checkpoint_every", "checkpoint_minutes", "batch_size",
-                 "nproc", "antialias", "random_downscale", "store", "store_finetune")
+                 "nproc", "antialias", "random_downscale", "store", "store_finetune", "max_bytes")
+
+
+def _size_arg(value: Optional[str]) -> Optional[int]:
+    """--max-bytes: a size in bytes, with a unit or without (200kB, 1.5MB, 120000)."""
+    if value is None:
+        return None
+    from .compare import parse_budgets
+
+    (text, kind, number), = parse_budgets([value] if isinstance(value, str) else value)
+    if kind != "bytes":
+        raise typer.BadParameter(f"{text!r}: give a size (200kB, 1.5MB, 120000), not a fraction")
+    return int(number)
 
 
 def _given(ctx: typer.Context) -> set[str]:
@@ -334,6 +346,10 @@ def train_command(
                                            "at 1/2 or 1/4 size against the area-averaged image (with --antialias)"),
     store: str = _STORE,
     store_finetune: float = _STORE_FINETUNE,
+    max_bytes: Optional[str] = typer.Option(None, "--max-bytes", callback=_size_arg, help="a byte budget for the "
+                                            "stored model (200kB, 1.5MB): from half-way it sheds its weakest "
+                                            "surfels or, for beta-gabor and gabor-adaptive, its faintest waves, "
+                                            "whichever costs the training views least, until its file fits"),
     viewer: bool = typer.Option(False, "--viewer", help="watch training live in the browser (see `splatzoo view`); "
                                 "it stays open after training until Ctrl-C"),
     viewer_port: int = typer.Option(8080, "--viewer-port", help="port of the live viewer"),
