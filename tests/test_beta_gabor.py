@@ -1,0 +1,106 @@
+"""beta-gabor: per-surfel wave counts (0 to 8) and per-surfel Beta falloffs on one surfel, held to the reference in
+float64, by finite differences, and at the extremes of both choices."""
+import math
+
+import pytest
+import torch
+
+import splatzoo
+from scenes import random_scene
+from splatzoo import Surfels, rasterize
+from splatzoo.types import MAX_FALLOFF
+
+FIELDS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
+
+
+def beta_gabor(n=48, seed=0):
+    """A beta-gabor model whose surfels hold every wave count from 0 to 8 and falloffs from the Gaussian's
+    neighbourhood to the tightest kernel."""
+    _, cam = random_scene(1, 0, 40, 32, seed=seed, dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    model = splatzoo.create_model("beta-gabor", d / d.norm(dim=1, keepdim=True), torch.rand(n, 3, generator=g))
+    model = model.double()
+    with torch.no_grad():
+        model.logit_opacity.fill_(0.5)
+        model.log_scales.fill_(math.log(0.15))
+        model.color_diff.uniform_(-0.4, 0.4, generator=g)
+        model.wave_freqs.uniform_(0.05, 0.6, generator=g)
+        model.falloff_logit.copy_(torch.linspace(-12, 12, n, dtype=torch.float64))  # s from ~6e-6 to MAX_FALLOFF
+        remove = torch.arange(8)[None] >= (torch.arange(n) % 9)[:, None]           # 0..8 waves a surfel
+        model.prune_waves(0.0, remove=remove)
+    assert set(model.wave_counts.tolist()) == set(range(9))
+    return model, cam
+
+
+def test_float64_native_equals_the_reference_with_gradients():
+    model, cam = beta_gabor()
+    with torch.no_grad():
+        s = model.surfels(cam)
+    assert s.falloff is not None and s.wave_counts is not None
+    assert float(s.falloff.min()) < 1e-4 and float(s.falloff.max()) > 0.99 * MAX_FALLOFF
+    outs, grads = {}, {}
+    for backend in ("reference", "cpu"):
+        model.zero_grad()
+        out = model.render(cam, backend=backend)
+        (out.rgb.sum() + 0.5 * out.alpha.sum() + 0.1 * out.depth.sum()).backward()
+        outs[backend] = out
+        grads[backend] = {k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None}
+    for k in FIELDS:
+        torch.testing.assert_close(getattr(outs["cpu"], k).detach(), getattr(outs["reference"], k).detach(),
+                                   rtol=0, atol=1e-9, msg=k)
+    assert outs["cpu"].alpha.max() > 0.3, "the scene draws little"
+    assert set(grads["cpu"]) == set(grads["reference"]) >= {"falloff_logit", "wave_weights", "wave_freqs",
+                                                             "wave_phases", "color_diff"}
+    for k, g in grads["reference"].items():
+        torch.testing.assert_close(grads["cpu"][k], g, rtol=1e-6, atol=1e-9, msg=k)
+    # a surfel's unused wave slots take no gradient
+    unused = torch.arange(model.wave_weights.shape[1])[None] >= model.wave_counts[:, None]
+    assert grads["cpu"]["wave_weights"][unused].abs().max() == 0
+
+
+def test_gradcheck_of_mixed_wave_counts_and_falloffs():
+    """Finite differences of the native render w.r.t. the falloffs and the waves of surfels with 0 to 8 waves."""
+    model, cam = beta_gabor(n=9, seed=4)
+    with torch.no_grad():
+        s = model.surfels(cam)
+        s.falloff = torch.linspace(0.02, 0.9, 9, dtype=torch.float64)  # inside (0, 1]: differences stay valid
+    names = ("falloff", "wave_amplitudes", "wave_phases", "wave_vectors", "opacities")
+    fixed = {k: v for k, v in s.tensors().items() if k not in names}
+
+    def f(*xs):
+        out = rasterize(Surfels(**fixed, **dict(zip(names, xs)), wave_counts=s.wave_counts), cam, backend="cpu")
+        return out.rgb, out.alpha, out.depth
+
+    inputs = [getattr(s, k).detach().clone().requires_grad_(True) for k in names]
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)
+
+
+@pytest.mark.parametrize("extreme", ["no waves", "all waves", "gaussian", "tightest"])
+def test_extremes_render_finite_and_as_their_limits(extreme):
+    """No waves is the beta surfel; the falloff's limit s -> 0 is the gabor surfel; the tightest kernel draws
+    nothing beyond its support."""
+    model, cam = beta_gabor(n=27, seed=2)
+    with torch.no_grad():
+        if extreme == "no waves":
+            model.prune_waves(math.inf)
+        elif extreme == "gaussian":
+            model.falloff_logit.fill_(-40.0)
+        elif extreme == "tightest":
+            model.falloff_logit.fill_(40.0)
+    out = model.render(cam, backend="cpu")
+    for k in FIELDS:
+        assert torch.isfinite(getattr(out, k)).all(), k
+    s = model.surfels(cam)
+    if extreme == "no waves":
+        beta = splatzoo.create_model("beta", model.means.detach().float(), torch.rand(27, 3)).double()
+        with torch.no_grad():
+            for k in ("means", "log_scales", "quats", "logit_opacity", "falloff_logit"):
+                getattr(beta, k).copy_(getattr(model, k))
+            beta.sh_dc.copy_(((model.color_base - 0.5) / 0.28209479177387814)[:, None])
+        torch.testing.assert_close(out.rgb, beta.render(cam, backend="cpu").rgb, rtol=0, atol=1e-9)
+    if extreme == "gaussian":
+        plain = Surfels(**{k: v for k, v in s.tensors().items() if k != "falloff"}, wave_counts=s.wave_counts)
+        torch.testing.assert_close(out.rgb, rasterize(plain, cam, backend="cpu").rgb, rtol=0, atol=1e-9)
+    if extreme == "tightest":
+        assert float(s.falloff.min()) == pytest.approx(MAX_FALLOFF)
