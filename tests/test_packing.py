@@ -16,7 +16,7 @@ from splatzoo.compare import ModelChoice, budget_count, parse_budgets, stored_co
 from splatzoo.errors import SplatzooError
 from splatzoo.packing import PRECISIONS, pack_checkpoint, quantise_tensor, unpack_checkpoint
 from splatzoo.registry import MODELS
-from splatzoo.zoo import stored_bytes, stored_copy, stored_values
+from splatzoo.zoo import make_config, stored_bytes, stored_copy, stored_values
 
 BUILTINS = [n for n in MODELS.names() if MODELS.get(n).cls.__module__.startswith("splatzoo.")]
 
@@ -326,3 +326,16 @@ def test_a_run_within_a_byte_budget_ends_within_it_and_resumes(tmp_path):
     resumed = train(data, None, None, None, tmp_path / "cut", resume=True, progress=False)
     assert resumed.metrics["stored_bytes"] <= budget_bytes
     assert resumed.model.num_primitives == whole.model.num_primitives
+
+
+def test_densification_grows_no_further_than_the_byte_budget(tmp_path):
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.data import load_scene
+    from splatzoo.training import TrainConfig, Trainer
+
+    scene = load_scene(make_synthetic_scene("sweater", tmp_path / "data", views=4, width=32, height=32))
+    for name, per in (("2dgs", 16), ("beta-gabor", 18)):   # 8-bit rows: 2DGS's 16 bytes; + falloff and wave mask
+        cfg = TrainConfig(iterations=10, num_primitives=20, max_bytes=400, store="8bit")
+        trainer = Trainer.start(scene, name, make_config(name), cfg, "cpu", torch.device("cpu"))
+        assert trainer.budget == 400 // per < Trainer.start(scene, name, make_config(name), TrainConfig(
+            iterations=10, num_primitives=20), "cpu", torch.device("cpu")).budget, name

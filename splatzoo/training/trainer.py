@@ -5,6 +5,7 @@ splatzoo.runs (`splatzoo.runs.train`).
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import math
 import time
@@ -364,6 +365,10 @@ class Trainer:
         self.reset_every = max(cfg.at(cfg.opacity_reset_interval), cfg.opacity_reset_interval // 3)
         # from the scene and the config alone, so that a resumed run has the same budget
         self.budget = cfg.max_primitives or densify_budget(scene, cfg.num_primitives or scene.points.shape[0])
+        if cfg.max_bytes:  # densification grows no further than the byte budget holds plain surfels
+            plain = copy.deepcopy(self.net).shed_richness().stored_row_bytes(cfg.store)
+            per = float(plain.mean()) if plain.numel() else 1.0
+            self.budget = max(1, min(self.budget, int(cfg.max_bytes // max(per, 1.0))))
         self._probe_views = None  # (camera, image) pairs of _probe_error, made on its first call
         self.shedding_steps = set(budget.shedding_steps(cfg.iterations)) if cfg.max_bytes else set()
         self.net.probe_error = self._probe_error
