@@ -203,7 +203,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
                 planned_runs.append((text, target, c, count, run, None if same else plan(c, count, run, target)))
         for text, target, c, count, run, planned in planned_runs:
             metrics = runs[c.label] if planned is None else train_or_reuse(c, *planned, run=run)
-            rate.append({"model": c.label, "budget": text, "budget_bytes": target, "num_primitives": count,
+            rate.append({"model": c.label, "budget": text, "budget_bytes": target, "start_primitives": count,
+                         "num_primitives": metrics.get("num_primitives", count),
                          "run": run.path.name, "stored_bytes": stored_size_of(metrics, run, store),
                          **{k: metrics.get(k) for k in ("size_bytes", "psnr", "ssim", "lpips", "fps",
                                                         "float32_psnr")}})
@@ -391,7 +392,8 @@ def rate_markdown(rate: list[dict], store: str) -> list[str]:
     models = list(dict.fromkeys(r["model"] for r in rate))
     budgets = list(dict.fromkeys(r["budget"] for r in rate))
     at = {(r["budget"], r["model"]): r for r in rate}
-    lines = ["", f"Rate: every model at every budget, stored as {store} (PSNR / LPIPS, stored kB, primitives):", "",
+    lines = ["", f"Rate: every model at every budget, stored as {store} (PSNR / LPIPS, stored kB, primitives at the "
+             "end):", "",
              "| budget | " + " | ".join(models) + " |", "|---" * (len(models) + 1) + "|"]
     for b in budgets:
         row = [at[(b, m)] for m in models]
@@ -421,11 +423,13 @@ def plot_rate(rate: list[dict], path, *, title: str = "") -> None:
         kb = [r["stored_bytes"] / 1e3 for r in pts]
         for ax, key in zip(axes, ("psnr", "lpips", "fps")):
             ax.plot(kb, [_num(r.get(key)) for r in pts], marker="o", ms=4, label=model)
-    from matplotlib.ticker import ScalarFormatter
+    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
 
     for ax, (label, better) in zip(axes, (("PSNR (dB)", "higher"), ("LPIPS", "lower"), ("FPS", "higher"))):
         ax.set(xscale="log", xlabel="stored size (kB)", ylabel=label, title=f"{label}, {better} is better")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))  # 1, 2, 5, 10, 20, ... kB
         ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8)
     if title:
