@@ -243,6 +243,11 @@ class SplatModel(nn.Module):
         waves: all of them), and return it: the smallest a model of this count can be. Nothing by default."""
         return self
 
+    def shed_free(self, optimizer=None) -> dict | None:
+        """Under a byte budget, before anything is chosen: drop what the model itself judges worth nothing (adaptive
+        waves: its own measured pruning, which then runs here instead of on its schedule). Nothing by default."""
+        return None
+
     def shedding_options(self, nbytes: int, precision: str, optimizer=None) -> list[Shedding]:
         """Ways to free at least `nbytes` of the model's stored size at `precision` (or as much as one way can),
         each with a preview of what it would leave for the trainer to measure. By default: the weakest primitives

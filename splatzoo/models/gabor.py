@@ -344,6 +344,8 @@ class GaborModel(SurfelModel):
         if not self.adaptive:
             return None
         cfg = train_config
+        if getattr(cfg, "max_bytes", None) and float(self.config.prune_psnr) > 0:
+            return None  # under a byte budget the measured pruning runs at each shedding (shed_free)
         first = float(self.config.prune_from) * cfg.iterations
         if cfg.densify:
             first = max(first, cfg.at(cfg.densify_until) + cfg.at(cfg.opacity_reset_interval) // 2)
@@ -500,6 +502,13 @@ class GaborModel(SurfelModel):
         wave, waved = self._wave_bytes(precision)
         counts = self.wave_counts.to(torch.float32)
         return plain + counts * wave + (counts > 0).to(torch.float32) * waved
+
+    @torch.no_grad()
+    def shed_free(self, optimizer=None) -> dict | None:
+        """The measured pruning (prune_psnr): the waves whose removal costs the probe views at most that many dB."""
+        if not self.adaptive or float(self.config.prune_psnr) <= 0 or self.probe_error is None:
+            return None
+        return self.prune_waves(self.measured_threshold(float(self.config.prune_psnr)), optimizer)
 
     @torch.no_grad()
     def shed_richness(self) -> "GaborModel":

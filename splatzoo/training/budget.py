@@ -2,7 +2,8 @@
 precision, by giving up whatever costs the images least.
 
 From FROM to UNTIL of the run, STEPS times, the model sheds a share of what it holds over the budget, so that it
-meets the budget at UNTIL and trains on without the shed parts for the rest of the run. Each time, every way the
+meets the budget at UNTIL and trains on without the shed parts for the rest of the run. Each time, what the model
+judges worth nothing goes first (SplatModel.shed_free: gabor-adaptive's measured pruning), then every way the
 model offers (SplatModel.shedding_options: its weakest surfels; a gabor-adaptive model also its faintest waves) is
 rendered on the trainer's probe views, and the one that raises their error least is taken. So a model that starts
 as rich as its count allows keeps waves where they are worth more than the surfels they cost, and becomes a plain
@@ -42,9 +43,10 @@ def share_due(step: int, iterations: int) -> float:
 def enforce(net, optimizer, probe_error, max_bytes: int, precision: str, share: float) -> dict:
     """Shed `share` of what the model holds over `max_bytes` (all of it when share is 1), choosing each time the way
     whose preview raises the probe views' error least. Returns {"stored_bytes", "shed": [what, ...]}."""
+    freed = net.shed_free(optimizer)  # what the model judges worth nothing goes first, whatever the budget
+    shed = [f"{freed['removed']} waves worth nothing"] if freed and freed.get("removed") else []
     size = stored_size(net, precision)
     target = max_bytes + (1 - share) * max(0, size - max_bytes)
-    shed = []
     for _ in range(MAX_ROUNDS):
         if size <= target:
             break
