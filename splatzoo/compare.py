@@ -183,31 +183,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             runs[c.label] = train_or_reuse(c, *planned[c.label])
         if equal_bytes:
             budget = int(runs[choices[0].label]["size_bytes"])
-    rate = []
-    if sizes:  # every model at every budget: the rate-distortion curves
-        first = choices[0]
-        reference = stored_size_of(runs[first.label], run_dirs[first.label], store)
-        reference_count = run_dirs[first.label].record()["train"]["num_primitives"] or scene.points.shape[0]
-        like = run_dirs[first.label].model()  # every run's file records the same render settings
-        planned_runs = []  # every run decided (and refused, if it must be) before any trains
-        for text, kind, value in sizes:
-            target = int(value * reference) if kind == "fraction" else int(value)
-            for c in choices:
-                count = budget_count(c, target, store, like)  # a model that sheds richness: as many as fit plain
-                if count < 1:
-                    raise SplatzooError(f"budget {text} ({target:,} bytes) holds no primitive of {c.label} (one costs "
-                                        f"{stored_cost(c, 1, store, like):,} bytes stored as {store}); give a larger "
-                                        "budget")
-                same = c is first and count == reference_count
-                run = run_dirs[c.label] if same else Run(out / "runs" / f"{_safe(c.label)}@{count}")
-                planned_runs.append((text, target, c, count, run, None if same else plan(c, count, run, target)))
-        for text, target, c, count, run, planned in planned_runs:
-            metrics = runs[c.label] if planned is None else train_or_reuse(c, *planned, run=run)
-            rate.append({"model": c.label, "budget": text, "budget_bytes": target, "start_primitives": count,
-                         "num_primitives": metrics.get("num_primitives", count),
-                         "run": run.path.name, "stored_bytes": stored_size_of(metrics, run, store),
-                         **{k: metrics.get(k) for k in ("size_bytes", "psnr", "ssim", "lpips", "fps",
-                                                        "float32_psnr")}})
+    rate = rate_curves(choices, sizes, scene, out, store, runs, run_dirs, plan, train_or_reuse) if sizes else []
     settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
                 "num_primitives": num_primitives, "densify": densify, "strategy": strategy, "seed": seed,
                 "backend": runs[choices[0].label].get("backend", backend), "scene_options": scene_options,
@@ -228,6 +204,35 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     plot_convergence(shown, out / "convergence.png")
     plot_comparison(scene, shown, out / "compare.png", backend=settings["backend"])
     return report
+
+
+def rate_curves(choices, sizes, scene, out: Path, store: str, runs: dict, run_dirs: dict, plan, train_or_reuse) -> list:
+    """compare --budgets: every model at every budget (the first model's run at its count, in `runs`, sets the
+    fractions), each run planned (and refused, if it must be) before any trains; one record per (budget, model)."""
+    first = choices[0]
+    reference = stored_size_of(runs[first.label], run_dirs[first.label], store)
+    reference_count = run_dirs[first.label].record()["train"]["num_primitives"] or scene.points.shape[0]
+    like = run_dirs[first.label].model()  # every run's file records the same render settings
+    planned_runs = []
+    for text, kind, value in sizes:
+        target = int(value * reference) if kind == "fraction" else int(value)
+        for c in choices:
+            count = budget_count(c, target, store, like)  # a model that sheds richness: as many as fit plain
+            if count < 1:
+                raise SplatzooError(f"budget {text} ({target:,} bytes) holds no primitive of {c.label} (one costs "
+                                    f"{stored_cost(c, 1, store, like):,} bytes stored as {store}); give a larger "
+                                    "budget")
+            same = c is first and count == reference_count
+            run = run_dirs[c.label] if same else Run(out / "runs" / f"{_safe(c.label)}@{count}")
+            planned_runs.append((text, target, c, count, run, None if same else plan(c, count, run, target)))
+    rate = []
+    for text, target, c, count, run, planned in planned_runs:
+        metrics = runs[c.label] if planned is None else train_or_reuse(c, *planned, run=run)
+        rate.append({"model": c.label, "budget": text, "budget_bytes": target, "start_primitives": count,
+                     "num_primitives": metrics.get("num_primitives", count),
+                     "run": run.path.name, "stored_bytes": stored_size_of(metrics, run, store),
+                     **{k: metrics.get(k) for k in ("size_bytes", "psnr", "ssim", "lpips", "fps", "float32_psnr")}})
+    return rate
 
 
 _UNITS = {"b": 1, "kb": 1e3, "mb": 1e6, "gb": 1e9, "kib": 1024, "mib": 1024**2, "gib": 1024**3}
