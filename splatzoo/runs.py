@@ -6,6 +6,7 @@ A run folder holds
                     the code that trained it (code_fingerprint): a run made by other code is named as such
   checkpoint.pt     the latest training state (written atomically; by iteration, by time and on SIGINT/SIGTERM)
   model.pt          the trained model (present once training finished)
+  model.szp         the same model packed at the run's storage precision (--store): its stored size
   train_log.jsonl   one JSON record per logged iteration
   metrics.json      evaluation on the test views; renders/ their images; mesh.ply from `extract-mesh`
   .splatzoo.lock    held (flock) by the one process writing the folder; names that process
@@ -41,7 +42,8 @@ from .training.trainer import test_psnr
 RUN_FORMAT = 1
 LOCK_NAME = ".splatzoo.lock"
 # everything a run writes; `overwrite` removes exactly these (never a file splatzoo did not write)
-RUN_ENTRIES = ("config.json", "checkpoint.pt", "model.pt", "train_log.jsonl", "metrics.json", "renders", "mesh.ply")
+RUN_ENTRIES = ("config.json", "checkpoint.pt", "model.pt", "model.szp", "train_log.jsonl", "metrics.json", "renders",
+               "mesh.ply")
 SCENE_OPTION_DEFAULTS = {"resolution": None, "max_width": None, "test_every": 8, "background": "auto",
                          "skip_missing": False}
 # the sources that decide a run's numbers (the dataset has its own fingerprint): the models, the trainer, the

@@ -208,6 +208,9 @@ def test_a_run_trained_with_store_8bit(tmp_path):
     assert np.isfinite(metrics["float32_psnr"]) and abs(metrics["float32_psnr"] - metrics["psnr"]) < 1.0
     res = CliRunner().invoke(app, ["eval", str(run / "model.szp"), "--data", str(data)])
     assert res.exit_code == 0, res.output
+    from splatzoo.runs import Run
+    Run(run).clear()   # what --overwrite removes: the packed file too
+    assert not (run / "model.szp").exists() and not (run / "model.pt").exists()
     res = CliRunner().invoke(app, ["train", str(data), "--store", "4bit", "--out", str(tmp_path / "r2")])
     assert res.exit_code != 0 and "--store must be one of float32, float16, 8bit" in str(res.exception)
     assert not (tmp_path / "r2").exists()

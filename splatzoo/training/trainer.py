@@ -138,7 +138,7 @@ class TrainConfig:
     max_bytes: int | None = field(default=None, metadata={
         "help": "a byte budget: the model ends the run no larger than this, stored at --store (the size of its "
                 "packed file). From half-way on it sheds what costs the training views least: its weakest surfels "
-                "or, for gabor-adaptive, its faintest waves (training/budget.py)"})
+                "or, for beta-gabor and gabor-adaptive, its faintest waves (training/budget.py)"})
     log_every: int = 10
 
     # what a stored record written before an option's default changed meant where it lacks the key: runs from
