@@ -4,7 +4,7 @@ precision, by giving up whatever costs the images least.
 From FROM to UNTIL of the run, STEPS times, the model sheds a share of what it holds over the budget, so that it
 meets the budget at UNTIL and trains on without the shed parts for the rest of the run. Each time, what the model
 judges worth nothing goes first (SplatModel.shed_free: gabor-adaptive's measured pruning), then every way the
-model offers (SplatModel.shedding_options: its weakest surfels; a gabor-adaptive model also its faintest waves) is
+model offers (SplatModel.shedding_options: its weakest surfels; beta-gabor and gabor-adaptive also their faintest waves) is
 rendered on the trainer's probe views, and the one that raises their error least is taken. So a model that starts
 as rich as its count allows keeps waves where they are worth more than the surfels they cost, and becomes a plain
 2DGS model of fewer surfels where they are not. After UNTIL the budget is only checked (nothing grows a model with
@@ -13,6 +13,8 @@ a fixed count).
 from __future__ import annotations
 
 import math
+
+from ..zoo import stored_bytes
 
 FROM = 0.5    # the first shedding, as a fraction of the run
 UNTIL = 0.85  # the model is within its budget from here on
@@ -27,12 +29,6 @@ def shedding_steps(iterations: int) -> list[int]:
     return sorted(steps | {iterations})
 
 
-def stored_size(net, precision: str) -> int:
-    from ..packing import pack_checkpoint
-
-    return len(pack_checkpoint(net.checkpoint(), precision))
-
-
 def share_due(step: int, iterations: int) -> float:
     """The share of the model's excess over the budget to shed at `step` (1 from UNTIL on)."""
     steps = [s for s in shedding_steps(iterations) if s <= max(UNTIL * iterations, 1)] or [iterations]
@@ -45,7 +41,7 @@ def enforce(net, optimizer, probe_error, max_bytes: int, precision: str, share: 
     whose preview raises the probe views' error least. Returns {"stored_bytes", "shed": [what, ...]}."""
     freed = net.shed_free(optimizer)  # what the model judges worth nothing goes first, whatever the budget
     shed = [f"{freed['removed']} waves worth nothing"] if freed and freed.get("removed") else []
-    size = stored_size(net, precision)
+    size = stored_bytes(net, precision)
     target = max_bytes + (1 - share) * max(0, size - max_bytes)
     for _ in range(MAX_ROUNDS):
         if size <= target:
@@ -58,5 +54,5 @@ def enforce(net, optimizer, probe_error, max_bytes: int, precision: str, share: 
         best = options[min(reversed(range(len(options))), key=errors.__getitem__)]
         best.apply()
         shed.append(best.what)
-        size = stored_size(net, precision)
+        size = stored_bytes(net, precision)
     return {"stored_bytes": size, "shed": shed}
