@@ -3,9 +3,9 @@ precision, by giving up whatever costs the images least.
 
 From FROM to UNTIL of the run, STEPS times, the model sheds a share of what it holds over the budget, so that it
 meets the budget at UNTIL and trains on without the shed parts for the rest of the run. Each time, what the model
-judges worth nothing goes first (SplatModel.shed_free: gabor-adaptive's measured pruning), then every way the
-model offers (SplatModel.shedding_options: its weakest surfels; beta-gabor and gabor-adaptive also their faintest waves) is
-rendered on the trainer's probe views, and the one that raises their error least is taken. So a model that starts
+judges worth nothing goes first (SplatModel.shed_free: adaptive waves' measured pruning), then every way the model
+offers (SplatModel.shedding_options: its weakest surfels; beta-gabor and gabor-adaptive also their faintest waves)
+is rendered on the trainer's probe views, and the one that raises their error least is taken. So a model that starts
 as rich as its count allows keeps waves where they are worth more than the surfels they cost, and becomes a plain
 2DGS model of fewer surfels where they are not. After UNTIL the budget is only checked (nothing grows a model with
 a fixed count).
