@@ -132,6 +132,10 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         raise SplatzooError("--equal-bytes is the single budget of the first model's size, one point of what "
                             "--budgets draws: give one of them")
     sizes = parse_budgets(budgets) if budgets else []
+    for text, kind, value in sizes:  # a size too small for any model is refused before anything trains
+        for c in choices:
+            if kind == "bytes" and budget_count(c, int(value), store) < 1:
+                raise too_small(c, text, int(value), store)
     run_dirs = {c.label: Run(out / "runs" / _safe(c.label)) for c in choices}
     for run in run_dirs.values():
         if run.status == "foreign":
@@ -219,9 +223,7 @@ def rate_curves(choices, sizes, scene, out: Path, store: str, runs: dict, run_di
         for c in choices:
             count = budget_count(c, target, store, like)  # a model that sheds richness: as many as fit plain
             if count < 1:
-                raise SplatzooError(f"budget {text} ({target:,} bytes) holds no primitive of {c.label} (one costs "
-                                    f"{stored_cost(c, 1, store, like):,} bytes stored as {store}); give a larger "
-                                    "budget")
+                raise too_small(c, text, target, store, like)
             same = c is first and count == reference_count
             run = run_dirs[c.label] if same else Run(out / "runs" / f"{_safe(c.label)}@{count}")
             planned_runs.append((text, target, c, count, run, None if same else plan(c, count, run, target)))
@@ -280,6 +282,11 @@ def stored_cost(choice: ModelChoice, count: int, store: str, like=None) -> int:
     if like is not None:
         model.antialias, model.background = like.antialias, like.background
     return stored_bytes(model.shed_richness(), store)
+
+
+def too_small(choice: ModelChoice, text: str, budget: int, store: str, like=None) -> SplatzooError:
+    return SplatzooError(f"budget {text} ({budget:,} bytes) holds no primitive of {choice.label} (one costs "
+                         f"{stored_cost(choice, 1, store, like):,} bytes stored as {store}); give a larger budget")
 
 
 def budget_count(choice: ModelChoice, budget: int, store: str, like=None) -> int:

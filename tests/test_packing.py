@@ -235,8 +235,10 @@ def test_compare_budgets_trains_every_model_at_every_budget(tmp_path):
     assert rate[3]["num_primitives"] < rate[2]["num_primitives"]               # a gabor surfel costs more
     assert (out / "rate.png").stat().st_size > 0 and "Rate: every model at every budget" in (
         out / "report.md").read_text()
-    with pytest.raises(SplatzooError, match="holds no primitive"):
-        compare(["2dgs"], data, out, iterations=20, num_primitives=600, budgets="10B", store="8bit", progress=False)
+    with pytest.raises(SplatzooError, match="holds no primitive"):   # refused before the reference run trains
+        compare(["2dgs"], data, tmp_path / "small", iterations=20, num_primitives=600, budgets="10B", store="8bit",
+                progress=False)
+    assert not (tmp_path / "small" / "runs").exists()
     with pytest.raises(SplatzooError, match="give one of them"):
         compare(["2dgs"], data, out, iterations=20, budgets="5%", equal_bytes=True, progress=False)
 
