@@ -132,10 +132,14 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         raise SplatzooError("--equal-bytes is the single budget of the first model's size, one point of what "
                             "--budgets draws: give one of them")
     sizes = parse_budgets(budgets) if budgets else []
-    for text, kind, value in sizes:  # a size too small for any model is refused before anything trains
+    # a budget too small for a model is refused before anything trains (or is retrained with --overwrite): a fraction
+    # against the first model's size at the start, which a fixed-count run keeps (a shedding one only loses)
+    start = stored_cost(choices[0], num_primitives or scene.points.shape[0], store) if sizes else 0
+    for text, kind, value in sizes:
+        target = int(value * start) if kind == "fraction" else int(value)
         for c in choices:
-            if kind == "bytes" and budget_count(c, int(value), store) < 1:
-                raise too_small(c, text, int(value), store)
+            if budget_count(c, target, store) < 1:
+                raise too_small(c, text, target, store)
     run_dirs = {c.label: Run(out / "runs" / _safe(c.label)) for c in choices}
     for run in run_dirs.values():
         if run.status == "foreign":

@@ -239,6 +239,10 @@ def test_compare_budgets_trains_every_model_at_every_budget(tmp_path):
         compare(["2dgs"], data, tmp_path / "small", iterations=20, num_primitives=600, budgets="10B", store="8bit",
                 progress=False)
     assert not (tmp_path / "small" / "runs").exists()
+    with pytest.raises(SplatzooError, match="holds no primitive"):   # a fraction too: before any run is retrained
+        compare(["2dgs"], data, tmp_path / "small", iterations=20, num_primitives=600, budgets="0.01%",
+                store="8bit", progress=False, overwrite=True)
+    assert not (tmp_path / "small" / "runs").exists()
     with pytest.raises(SplatzooError, match="give one of them"):
         compare(["2dgs"], data, out, iterations=20, budgets="5%", equal_bytes=True, progress=False)
 
