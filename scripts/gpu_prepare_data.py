@@ -147,7 +147,8 @@ def check(out: Path, reference=None, factor: int = 1) -> dict:
             worst_pose = max(worst_pose, float((va.camera.world_to_camera.double()
                                                 - small.world_to_camera.double()).abs().max()))
         if worst_K > 1e-3 or worst_pose > 1e-5:
-            raise SystemExit(f"exported cameras differ from the source's: K by {worst_K:.3g} px, poses by {worst_pose:.3g}")
+            raise SystemExit(f"exported cameras differ from the source's: K by {worst_K:.3g} px, poses by "
+                             f"{worst_pose:.3g}")
         dp = float((scene.points - reference.points).abs().max())
         if scene.points.shape != reference.points.shape or dp > 1e-6:
             raise SystemExit(f"exported points differ from the source's (max {dp:.3g})")

@@ -51,7 +51,8 @@ def main(argv=None) -> int:
     psnr_full = test_psnr(full.model, scene, args.backend)
     psnr_resumed = test_psnr(resumed.model, scene, args.backend)
     same_log = [r["iteration"] for r in log("full")] == [r["iteration"] for r in log("part")]
-    report = {"iterations": args.iterations, "seconds": round(seconds, 2), "its_per_s": round(args.iterations / seconds, 1),
+    report = {"iterations": args.iterations, "seconds": round(seconds, 2),
+              "its_per_s": round(args.iterations / seconds, 1),
               "first_train_psnr": first, "test_psnr": round(psnr_full, 3), "test_psnr_resumed": round(psnr_resumed, 3),
               "primitives": full.model.num_primitives, "same_iteration_log": same_log,
               "device": torch.cuda.get_device_name() if args.backend == "cuda" else args.backend}

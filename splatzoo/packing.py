@@ -15,8 +15,8 @@ them by float32 rounding at most (a column's range is recomputed from decoded va
 
 The file: the 4 bytes `SZPK`, a little-endian uint32 header length, the header (UTF-8 JSON, zlib-compressed: format
 version, model, config, render settings, precision, and per tensor its name, shape, dtype and encoding), then each
-tensor's bytes in the header's order. It is read without running code: the header is parsed and checked, every size is checked
-against the file before anything is decoded.
+tensor's bytes in the header's order. It is read without running code: the header is parsed and checked, and every
+size is checked against the file before anything is decoded.
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ PRECISIONS = ("float32", "float16", "8bit")
 POSITION_FIELDS = ("means",)  # stored at 16 bits in the reduced precisions: a step of 1/65535 of the scene's span
 MAX_HEADER = 1 << 24
 
-# (numpy dtype, bytes) of what a tensor may hold and how it may be encoded
+# the dtypes a stored tensor may have (by name), and the fixed-point codes (numpy dtype, bits)
 _DTYPES = {"float32": np.float32, "float64": np.float64, "float16": np.float16, "int64": np.int64,
            "int32": np.int32, "int16": np.int16, "uint8": np.uint8, "bool": np.bool_}
 _CODES = {"u8": (np.uint8, 8), "u16": (np.uint16, 16)}

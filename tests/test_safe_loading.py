@@ -54,7 +54,8 @@ def test_crafted_pickle_is_refused_and_runs_nothing(tmp_path, shape):
         ckpt = {"model": ckpt, "iteration": 3, "optimizer": {}}
     path = tmp_path / "model.pt"
     torch.save(ckpt, path)
-    with pytest.raises(SplatzooError, match=r"model file .*model\.pt.*cannot be read safely.*\.pt or \.szp file written by") as e:
+    with pytest.raises(SplatzooError,
+                       match=r"model file .*model\.pt.*cannot be read safely.*\.pt or \.szp file written by") as e:
         load_model(path)
     assert not marker.exists()
     # the refusal says why, and never passes on torch's advice to load it with weights_only=False
