@@ -41,6 +41,9 @@ from .training.trainer import test_psnr
 
 RUN_FORMAT = 1
 LOCK_NAME = ".splatzoo.lock"
+# where --overwrite keeps the run it replaces until the new run's first checkpoint: restored if the new run fails
+# (or is killed) before then, deleted once the new run has a checkpoint of its own
+REPLACED_NAME = ".splatzoo-replaced"
 # everything a run writes; `overwrite` removes exactly these (never a file splatzoo did not write)
 RUN_ENTRIES = ("config.json", "checkpoint.pt", "model.pt", "model.szp", "train_log.jsonl", "metrics.json", "renders",
                "mesh.ply")
@@ -288,7 +291,8 @@ class Run:
             return "interrupted" if self.config_path.exists() else "foreign"
         if self.config_path.exists():
             return "started"
-        names = [p.name for p in self.path.iterdir() if p.name != LOCK_NAME and not _is_temp(p.name)]
+        names = [p.name for p in self.path.iterdir()
+                 if p.name not in (LOCK_NAME, REPLACED_NAME) and not _is_temp(p.name)]
         return "foreign" if names else "new"
 
     # reading -------------------------------------------------------------------------------------------------
@@ -424,6 +428,7 @@ class Run:
             fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as e:
             raise SplatzooError(f"cannot create run folder {self.path}: {e.strerror or e}; choose a writable --out") from None
+        held = False
         try:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -431,12 +436,22 @@ class Run:
                 holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "another process"
                 raise RunLockedError(f"{self.path} is in use by {holder}; wait for it to finish or choose another "
                                      "--out") from None
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"`{command}` (pid {os.getpid()} on {socket.gethostname()}, since "
-                          f"{time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
+            held = True
+            try:  # who holds it, for the message above; a full disk leaves it unnamed (the writes then say so)
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"`{command}` (pid {os.getpid()} on {socket.gethostname()}, since "
+                              f"{time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
+            except OSError:
+                pass
             self._remove_stale_temp_files()
+            self._settle_replaced()
             yield self
         finally:
+            if held:  # the holder's name goes with it: a folder at rest is byte-identical before and after a command
+                try:
+                    os.ftruncate(fd, 0)
+                except OSError:
+                    pass
             os.close(fd)  # releases the flock
 
     @contextmanager
@@ -464,13 +479,60 @@ class Run:
                         p.unlink(missing_ok=True)
 
     def clear(self) -> None:
-        """Remove what a run wrote (for --overwrite); files splatzoo did not write stay."""
+        """Remove what a run wrote; files splatzoo did not write stay."""
         for name in RUN_ENTRIES:
             p = self.path / name
             if p.is_dir():
                 shutil.rmtree(p)
             elif p.exists():
                 p.unlink()
+
+    # --overwrite: the old run is moved aside, not deleted, until the new one has a checkpoint ------------------
+    @property
+    def replaced_path(self) -> Path:
+        return self.path / REPLACED_NAME
+
+    def set_aside(self) -> None:
+        """Move what a run wrote into REPLACED_NAME (one rename per entry, on the same file system), so a new run
+        can start in the folder and the old one can come back if the new one fails before its first checkpoint."""
+        entries = [name for name in RUN_ENTRIES if (self.path / name).exists()]
+        if not entries:
+            return
+        try:
+            self.replaced_path.mkdir()
+            for name in entries:
+                os.replace(self.path / name, self.replaced_path / name)
+        except OSError as e:
+            self.restore_replaced()
+            raise SplatzooError(f"cannot set the run in {self.path} aside to replace it ({e.strerror or e}); it is "
+                                "unchanged. Free disk space or fix the folder's permissions") from None
+
+    def restore_replaced(self) -> bool:
+        """Bring back the run that --overwrite set aside (removing what the new run wrote): True if there was one."""
+        aside = self.replaced_path
+        if not aside.is_dir():
+            return False
+        self.clear()
+        for p in aside.iterdir():
+            os.replace(p, self.path / p.name)
+        aside.rmdir()
+        return True
+
+    def drop_replaced(self) -> None:
+        """The new run has a checkpoint of its own: the run it replaced is deleted for good."""
+        if self.replaced_path.is_dir():
+            shutil.rmtree(self.replaced_path)
+
+    def _settle_replaced(self) -> None:
+        """A run set aside by a process that died: kept out if the new run got its first checkpoint, else restored."""
+        if not self.replaced_path.is_dir():
+            return
+        if self.checkpoint_path.exists() or self.model_path.exists():
+            self.drop_replaced()
+        else:
+            self.restore_replaced()
+            print(f"note: {self.path}: a run started with --overwrite stopped before its first checkpoint; the run "
+                  "it was to replace is restored", file=sys.stderr, flush=True)
 
     def write_metrics(self, metrics: dict) -> None:
         write_json(self.metrics_path, metrics)
@@ -603,7 +665,8 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
         return _train_launched(out, world, data, model, model_options, config, scene_options, resume=resume,
                                overwrite=overwrite, progress=progress, evaluate_at_end=evaluate_at_end,
                                stop_after=stop_after, command=command)
-    with out.lock(command, create=True):
+    made = not out.path.exists()
+    with out.lock(command, create=True), _restoring_on_failure(out, made):
         scene, model, model_config, cfg, state = _prepare(out, data, model, model_options, config, scene_options,
                                                           resume=resume, overwrite=overwrite, init_from=init_from)
         if cfg.nproc > 1:
@@ -614,6 +677,25 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
                                 evaluate_at_end=evaluate_at_end, stop_after=stop_after)
         return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
                            evaluate_at_end=evaluate_at_end, stop_after=stop_after, watch=watch)
+
+
+@contextmanager
+def _restoring_on_failure(run: Run, made: bool):
+    """A new run that fails (or is interrupted) before its first checkpoint gives the folder back to the run that
+    --overwrite set aside (the error then says so), or, refused before it wrote anything, removes the folder it
+    made (`made`: the folder did not exist before this command)."""
+    try:
+        yield
+    except BaseException as e:
+        if made and run.path.is_dir() and [p.name for p in run.path.iterdir()] == [LOCK_NAME]:
+            shutil.rmtree(run.path, ignore_errors=True)  # the lock file goes too: the flock dies with its fd
+        elif run.restore_replaced():
+            note = f" The run that --overwrite was to replace is restored in {run.path}, unchanged."
+            if isinstance(e, SplatzooError):
+                e.args = (f"{e.args[0] if e.args else e}{note}", *e.args[1:])
+            else:
+                print(note.strip(), file=sys.stderr, flush=True)
+        raise
 
 
 def _prepare(out: Run, data, model, model_options, config, scene_options, *, resume: bool, overwrite: bool,
@@ -697,13 +779,30 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
             raise SplatzooError(f"scene {scene.name!r} has no training views")
         for note in getattr(scene, "notes", ()):
             print(note, file=sys.stderr, flush=True)
-        out.clear()
+        _check_can_start(scene, model, model_config, cfg, initial)
+        out.set_aside()  # deleted at the new run's first checkpoint, restored if it fails before
         record = make_record(scene, scene_options, model, model_config, cfg)
         if initial is not None:
             record["init_from"] = str(Path(init_from).expanduser().resolve())
         write_json(out.config_path, record)
         state = None
     return scene, model, model_config, cfg, state
+
+
+def _check_can_start(scene, model: str, model_config, cfg: TrainConfig, initial=None) -> None:
+    """What can still refuse a new run after its request is checked, asked before an old run is replaced: the
+    backend (and its devices for --nproc) and the memory its primitives need."""
+    from .rasterizers import select_backend
+    from .training.trainer import check_start
+
+    chosen = select_backend(cfg.backend)
+    device = chosen.torch_device()
+    if cfg.nproc > 1 and device.type == "cuda" and cfg.nproc > torch.cuda.device_count():
+        raise SplatzooError(f"--nproc {cfg.nproc} trains one process per GPU, but this machine has "
+                            f"{torch.cuda.device_count()}; pass --nproc {max(1, torch.cuda.device_count())} or "
+                            "--backend cpu")
+    check_start(scene, model, model_config, cfg, device,
+                initial=None if initial is None else initial.num_primitives)
 
 
 def initial_model(path, model: str | None = None, model_options: dict | None = None):
@@ -856,6 +955,7 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
         state = trainer.state_dict()  # every rank: it sums the densification statistics
         if writer:
             torch_save(state, run.checkpoint_path)
+            run.drop_replaced()  # the new run can resume now: the run it replaced is gone for good
         last_save = time.monotonic()
 
     try:
@@ -943,7 +1043,9 @@ def _train_launched(out: Run, world: int, data, model, model_options, config, sc
             decided = [None, None]  # [failure message, (scene, model, model_config, cfg, state)]
             if rank == 0:
                 try:
+                    made = not out.path.exists()
                     held.enter_context(out.lock(command, create=True))
+                    held.enter_context(_restoring_on_failure(out, made))
                     decided[1] = _prepare(out, data, model, model_options, config, scene_options, resume=resume,
                                           overwrite=overwrite, world=world)
                 except Exception as e:
@@ -1003,8 +1105,8 @@ def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, re
                         except ProcessLookupError:
                             pass
                     raise SplatzooError(f"rank {rank} of {cfg.nproc} stopped responding (no heartbeat for "
-                                        f"{silent_after:.0f} s: stopped, or hung); the run was ended (its last "
-                                        f"checkpoint is kept; resume with: splatzoo train --resume --out {run.path})")
+                                        f"{silent_after:.0f} s: stopped, or hung); the run was ended "
+                                        f"({_what_is_kept(run)})")
     except mp.ProcessExitedException as e:
         code = e.exit_code
         if code in (130, 143):
@@ -1012,12 +1114,11 @@ def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, re
             raise TrainingInterrupted(f"training stopped by {name}; checkpoint written. Resume with: splatzoo "
                                       f"train --resume --out {run.path}", code) from None
         how = f"was killed by {signal.Signals(-code).name}" if code < 0 else f"exited with code {code}"
-        raise SplatzooError(f"rank {e.error_index} of {cfg.nproc} {how}; the run stopped (its last checkpoint is "
-                            f"kept; resume with: splatzoo train --resume --out {run.path})") from None
+        raise SplatzooError(f"rank {e.error_index} of {cfg.nproc} {how}; the run stopped "
+                            f"({_what_is_kept(run)})") from None
     except mp.ProcessRaisedException as e:
         last = str(e).strip().splitlines()[-1]
-        raise SplatzooError(f"rank {e.error_index} of {cfg.nproc} failed: {last}. The last checkpoint is kept; "
-                            f"resume with: splatzoo train --resume --out {run.path}") from None
+        raise SplatzooError(f"rank {e.error_index} of {cfg.nproc} failed: {last} ({_what_is_kept(run)})") from None
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
@@ -1026,6 +1127,12 @@ def _spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, re
 
     return TrainResult(run.path, load_model(run.model_path) if run.model_path.exists() else None,
                        run.metrics() or {})
+
+
+def _what_is_kept(run: Run) -> str:
+    if run.checkpoint_path.exists():
+        return f"its last checkpoint is kept; resume with: splatzoo train --resume --out {run.path}"
+    return "it stopped before its first checkpoint"
 
 
 def loopback_interface() -> str | None:

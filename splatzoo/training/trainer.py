@@ -77,6 +77,14 @@ def check_memory(model: str, model_config, initial: int, budget: int, device: to
                                 f"pass a smaller {option}")
 
 
+def check_start(scene, model: str, model_config, cfg, device: torch.device, initial: int | None = None) -> None:
+    """Refuse a fresh run the machine cannot hold, before anything is allocated. initial: the primitive count it
+    starts from (None: the scene's points, or --num-primitives of them)."""
+    initial = initial if initial is not None else cfg.num_primitives or scene.points.shape[0]
+    budget = (cfg.max_primitives or densify_budget(scene, initial)) if cfg.densify else initial
+    check_memory(model, model_config, initial, budget, device)
+
+
 def densify_budget(scene, initial: int) -> int:
     """The primitive count densification may reach when --max-primitives is not given: one surfel per
     PIXELS_PER_SURFEL training pixels (3DGS's converged scenes hold about one Gaussian per 100), and at least
@@ -377,9 +385,7 @@ class Trainer:
     def start(cls, scene, model: str, model_config, cfg: TrainConfig, backend: str, device,
               comm: Comm | None = None) -> "Trainer":
         """A fresh run: the model initialised from the scene's points (chosen by the seed)."""
-        initial = cfg.num_primitives or scene.points.shape[0]
-        budget = (cfg.max_primitives or densify_budget(scene, initial)) if cfg.densify else initial
-        check_memory(model, model_config, initial, budget, device)
+        check_start(scene, model, model_config, cfg, device)
         pts, cols = select_initial_points(scene.points, scene.colors, cfg.num_primitives, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
         net.antialias = cfg.antialias
