@@ -5,12 +5,14 @@ import contextlib
 import dataclasses
 import math
 import typing
+import warnings
 from pathlib import Path
 
 import torch
 
 from .errors import SplatzooError
 from .io import atomic_path, read_torch, torch_save
+from .model_checks import drawing_problem, repair_geometry
 from .models.base import ModelOptionError, SplatModel
 from .packing import PRECISIONS
 from .registry import MODELS, ModelSpec
@@ -291,7 +293,7 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
         raise fail(f"its state does not fit model {name!r} with config {_brief(config)} "
                    f"({type(e).__name__}: {_brief(e)})") from None
     _check_shapes(name, expected, {**model.state_dict(), **model.per_primitive()}, variable, fail)
-    empty = model.draws_nothing()
+    empty = drawing_problem(model)
     if empty:
         raise fail(empty)
     model.name = name
@@ -310,13 +312,21 @@ def model_from_checkpoint(ckpt: dict) -> SplatModel:
 
 def load_model(path) -> SplatModel:
     """Load a model written by save_model (or the "model" entry of a training checkpoint). The file is read with
-    weights_only: a crafted file cannot run code, it is refused."""
+    weights_only: a crafted file cannot run code, it is refused. So is a model that draws nothing (0 surfels, every
+    opacity or scale at nothing: splatzoo.model_checks); what the rasterizer would change silently (a zero quaternion,
+    a log-scale beyond the largest size drawn) is a warning with its count."""
     from .packing import SUFFIX, is_packed, read_packed
 
     path = Path(path)
     if path.suffix == SUFFIX or is_packed(path):
-        return _model_from_checkpoint(read_packed(path), f"packed model {path}", _MODEL_FILE_FIX)
-    ckpt = read_torch(path, "model file", _MODEL_FILE_FIX)
-    if isinstance(ckpt, dict) and "state" not in ckpt and isinstance(ckpt.get("model"), dict):
-        ckpt = ckpt["model"]  # a training checkpoint: the model is one entry of it
-    return _model_from_checkpoint(ckpt, f"model file {path}", _MODEL_FILE_FIX)
+        where = f"packed model {path}"
+        model = _model_from_checkpoint(read_packed(path), where, _MODEL_FILE_FIX)
+    else:
+        ckpt = read_torch(path, "model file", _MODEL_FILE_FIX)
+        if isinstance(ckpt, dict) and "state" not in ckpt and isinstance(ckpt.get("model"), dict):
+            ckpt = ckpt["model"]  # a training checkpoint: the model is one entry of it
+        where = f"model file {path}"
+        model = _model_from_checkpoint(ckpt, where, _MODEL_FILE_FIX)
+    for note in repair_geometry(model):
+        warnings.warn(f"{where}: {note}", UserWarning, stacklevel=2)
+    return model
