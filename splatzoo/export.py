@@ -51,8 +51,15 @@ Reading (`load_ply`)
 - A file whose model cannot be told is an error that names what is missing, never a silent 2dgs: properties a
   splatzoo model writes (gabor_*, falloff_logit, ...) without the header, or a missing standard property. Other
   unknown properties (another tool's extras) are ignored with a warning.
+- An opacity logit of -inf or +inf in a file without the header (opacity exactly 0 or 1, as splat-transform reads a
+  compressed PLY's 8 bits) is read as -SATURATED_LOGIT or +SATURATED_LOGIT.
+- A model that draws nothing (0 surfels, every opacity below 1/255, every surfel collapsed to a point) is refused;
+  zero quaternions become the identity (how they would be drawn) and log-scales beyond the largest size drawn are
+  kept, each with a warning that gives the count (splatzoo.model_checks).
 All reading and writing of the file itself goes through splatzoo.ply (plyfile). `load_source` (what the commands
-use) also reads run folders, .pt files and, through splat-transform, SPZ, SOG, compressed PLY, .splat and .ksplat.
+use) also reads run folders, .pt files and, through splat-transform, SPZ, SOG, compressed PLY, .splat and .ksplat
+(splatzoo.splat_tools.read_splat_file): a file splat-transform cannot read is refused with its own message and the
+file's name and format, and every message names the file, never the temporary PLY in between.
 """
 from __future__ import annotations
 
@@ -71,12 +78,14 @@ import torch
 
 from .errors import PluginError, SplatzooError
 from .io import read_ply_vertices, write_ply_vertices
+from .model_checks import check_draws, check_in_view, repair_geometry
 from .ply import compressed_ply, ply_type_name
 from .registry import Registry
 
 FORMAT_VERSION = 2     # 2: scale_2 (-inf) and the SplatRenderMode comment; version 1 files (two scales) still load
 FLAT_LOG_SCALE = float("-inf")  # scale_2 of a surfel: log(0), see the module docstring
 RENDER_MODE_COMMENT = "SplatRenderMode: 2dgs"
+SATURATED_LOGIT = 20.0  # the opacity logit another tool's -inf / +inf (opacity 0 / 1) is read as: 2e-9 from 0 / 1
 
 # parameter name -> property prefix (or explicit names) of the standard layouts
 _FIXED = {"means": ["x", "y", "z"], "logit_opacity": ["opacity"]}
@@ -108,7 +117,7 @@ def _to_columns(name: str, value: torch.Tensor) -> np.ndarray:
     a = value.detach().cpu().float().numpy()
     if name in _CHANNEL_MAJOR and a.ndim == 3:
         a = a.transpose(0, 2, 1)
-    return np.ascontiguousarray(a).reshape(a.shape[0], -1)
+    return np.ascontiguousarray(a).reshape(a.shape[0], math.prod(a.shape[1:]))  # not -1: a model may have 0 rows
 
 
 def _from_columns(name: str, columns: np.ndarray, trailing: tuple[int, ...]) -> torch.Tensor:
@@ -364,7 +373,24 @@ def load_ply(path):
     n = arr.shape[0]
     columns = {k: arr[k] for k in names}
     notes = []
+    rot = [f"rot_{i}" for i in range(4)]
+    if all(k in present for k in rot) and all(arr.dtype[k].kind == "f" for k in rot):
+        zero = _zero_quaternions(np.stack([arr[k] for k in rot], 1))
+        if zero.any():  # drawn as the identity anyway (the rasterizer normalises by at least ZERO_QUATERNION): say so
+            for i, k in enumerate(rot):
+                columns[k] = np.where(zero, np.float32(i == 0), arr[k]).astype(arr.dtype[k])
+            notes.append(f"{path}: {int(zero.sum())} of its {n} surfels have a zero rotation quaternion (no "
+                         "orientation); they were given the identity rotation, which is how they would be drawn. Check "
+                         "the tool that wrote the file")
     if not ours:
+        if "opacity" in present and arr.dtype["opacity"].kind == "f":
+            # an opacity of exactly 0 or 1 is a logit of -inf or +inf: what splat-transform reads from the 8 bits of
+            # a compressed PLY; kept as the finite logit of (nearly) the same opacity, so it is not taken for damage
+            with np.errstate(invalid="ignore"):
+                infinite = np.isinf(arr["opacity"])
+            if infinite.any():
+                columns["opacity"] = np.where(infinite, np.sign(arr["opacity"]) * SATURATED_LOGIT,
+                                              arr["opacity"]).astype(arr.dtype["opacity"])
         if ignored:
             more = " ..." if len(ignored) > 8 else ""
             notes.append(f"{path}: ignored the properties {', '.join(ignored[:8])}{more}, which the 2DGS/3DGS layout "
@@ -373,7 +399,7 @@ def load_ply(path):
             _float_columns(path, arr, ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"],
                            "log_scales")
             scales = np.stack([arr[f"scale_{i}"] for i in range(3)], 1)
-            quats = np.stack([arr[f"rot_{i}"] for i in range(4)], 1)
+            quats = np.stack([columns[f"rot_{i}"] for i in range(4)], 1)
             bad = ~np.isfinite(quats).all(1) | np.isnan(scales).any(1) | (scales == np.inf).any(1)
             if bad.any():
                 raise SplatzooError(f"{path}: {int(bad.sum())} Gaussian(s) have NaN or infinite scales or rotations; "
@@ -420,10 +446,20 @@ def load_ply(path):
         new[pname] = _from_columns(pname, cols, trailing)
     model.replace_parameters(new)
     model.antialias = "splatzoo antialias true" in comments
+    check_draws(model, str(path), "export the model again from a run that trained (or pass another file)")
+    notes += [f"{path}: {note}" for note in repair_geometry(model)]
     model.notes = notes
     for note in notes:
         warnings.warn(note, UserWarning, stacklevel=2)
     return model
+
+
+def _zero_quaternions(quats: np.ndarray) -> np.ndarray:
+    """[N] bool: which quaternions [N,4] are no rotation (shorter than model_checks.ZERO_QUATERNION)."""
+    from .model_checks import ZERO_QUATERNION
+
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.linalg.norm(quats.astype(np.float64), axis=1) < ZERO_QUATERNION
 
 
 def _float_columns(path, arr, props, pname: str) -> None:
@@ -444,9 +480,8 @@ CONVERTIBLE_SUFFIXES = (".compressed.ply", ".spz", ".sog", ".splat", ".ksplat")
 def load_source(source):
     """(model, the file it was read from) of a run folder (its trained model.pt), a model .pt or a model .ply; SPZ,
     SOG, compressed PLY, .splat and .ksplat files are converted to a PLY by splat-transform first (then read as
-    splat files without a splatzoo header: `2dgs`)."""
-    import tempfile
-
+    splat files without a splatzoo header: `2dgs`). A model that draws nothing is refused here, whatever its file
+    (splatzoo.model_checks)."""
     from .runs import Run
     from .zoo import load_model
 
@@ -457,10 +492,7 @@ def load_source(source):
         raise SplatzooError(f"{str(source)[:200]} cannot be looked up ({e.strerror or e})") from None
     name = source.name.lower()
     if is_file and (name.endswith(CONVERTIBLE_SUFFIXES[1:]) or (name.endswith(".ply") and compressed_ply(source))):
-        from .splat_tools import convert_file
-
-        with tempfile.TemporaryDirectory(prefix="splatzoo-load-") as folder:
-            return load_ply(convert_file(source, Path(folder) / "model.ply")), source
+        return _load_converted(source), source
     if is_file:
         with open(source, "rb") as f:
             magic = f.read(3)
@@ -472,6 +504,34 @@ def load_source(source):
                             "or a model .ply")
     run = Run(source)
     return run.model(), run.model_path
+
+
+def _load_converted(source: Path):
+    """The model of a splat file that splat-transform converts to a PLY for load_ply. Every message and note names
+    `source`, never the temporary PLY (which is gone by the time anyone reads them)."""
+    import tempfile
+
+    from .splat_tools import read_splat_file
+
+    label = f"{source} (read through splat-transform)"
+    with tempfile.TemporaryDirectory(prefix="splatzoo-load-") as folder:
+        ply = read_splat_file(source, Path(folder) / "model.ply")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                model = load_ply(ply)
+            except SplatzooError as e:
+                raise type(e)(str(e).replace(str(ply), label)) from None
+    model.notes = [note.replace(str(ply), label) for note in model.notes]
+    for w in caught:
+        warnings.warn(str(w.message).replace(str(ply), label), w.category, stacklevel=3)
+    means = model.per_primitive().get("means")
+    n = model.num_primitives
+    if means is not None and n > 1 and bool((means.detach() == means.detach()[:1]).all()):
+        point = ", ".join(f"{float(x):.4g}" for x in means.detach()[0])
+        raise SplatzooError(f"{label}: every one of its {n} splats lies at the one point ({point}): the file's "
+                            "positions were lost (it is damaged or was written wrongly); export or download it again")
+    return model
 
 
 # --- the exporter registry -------------------------------------------------------------------------------------
@@ -691,6 +751,8 @@ class PlyOptions:
 
 
 VIEWER_DILATION = 0.3  # px^2 a 3DGS-style viewer adds to every splat's screen covariance
+_VIEWER_FIX = ("Export it with ply:viewer=exact (the surfels as trained) instead, or from a run whose training cameras "
+               "see the model")
 VIEWER_RULES = ("exact", "3dgs", "mip")
 
 
@@ -717,7 +779,10 @@ def compensate_viewer_dilation(model, cameras, rule: str = "3dgs") -> None:
     s_i, axis i's variance on screen (px^2), becomes s_i' = max(s_i - (0.3 - f), s_i / 4), f the model's own footprint
     (0.1 px^2 when anti-aliased, else 0); the opacity keeps the splat's mass on screen (o sqrt(s0 s1)): rule "3dgs"
     (the viewer keeps the opacity) o' = o sqrt(s0 s1 / ((s0' + 0.3)(s1' + 0.3))), rule "mip" (the viewer rescales it
-    by sqrt(s0' s1' / ((s0' + 0.3)(s1' + 0.3))), as Spark does) o' = o sqrt(s0 s1 / (s0' s1')); at most 0.99."""
+    by sqrt(s0' s1' / ((s0' + 0.3)(s1' + 0.3))), as Spark does) o' = o sqrt(s0 s1 / (s0' s1')); at most 0.99.
+
+    A model none of whose surfels the cameras see (model_checks.check_in_view), or that would come out with every
+    opacity below 1/255, is refused before anything changes: its file would show nothing."""
     from .geometry import quat_to_rotmat
 
     if rule not in VIEWER_RULES[1:]:
@@ -726,6 +791,9 @@ def compensate_viewer_dilation(model, cameras, rule: str = "3dgs") -> None:
     if "log_scales" not in per or "logit_opacity" not in per or "quats" not in per:
         raise SplatzooError(f"model {model.name!r} has no log_scales, logit_opacity and quats to compensate")
     means, quats = per["means"].double().cpu(), per["quats"].double().cpu()
+    cameras = list(cameras)
+    # a model no camera sees would be sized by guesswork and come out invisible: refused, saying where it is
+    check_in_view(model, cameras, f"ply:viewer={rule} of the {model.name} model", fix=_VIEWER_FIX)
     axes = quat_to_rotmat(torch.nn.functional.normalize(quats, dim=1))[:, :, :2]
     px2, fore = training_view_scale(means, axes, cameras)
     px2 = torch.nan_to_num(px2, nan=float(px2.nanmedian()) if px2.isfinite().any() else 1.0)
@@ -735,6 +803,10 @@ def compensate_viewer_dilation(model, cameras, rule: str = "3dgs") -> None:
     shrunk = torch.maximum(s - (VIEWER_DILATION - footprint), s / 4)
     kept = s.prod(1) / ((shrunk + VIEWER_DILATION).prod(1) if rule == "3dgs" else shrunk.prod(1))
     opacity = (torch.sigmoid(per["logit_opacity"].double().cpu()) * kept.sqrt()).clamp(1e-6, 0.99)
+    if float(opacity.max()) < model.raster_settings.alpha_min:
+        raise SplatzooError(f"ply:viewer={rule}: made for the viewer's dilation, every one of the {model.name} "
+                            f"model's {model.num_primitives} surfels would have an opacity below 1/255 (each is far "
+                            f"under a pixel in the training views), so the file would show nothing. {_VIEWER_FIX}")
     new_scales = 0.5 * torch.log(shrunk * px2[:, None] / fore)
     like = per["log_scales"]
     model.replace_parameters({"log_scales": new_scales.to(like), "logit_opacity":
