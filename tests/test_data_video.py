@@ -115,6 +115,31 @@ def test_bad_videos_and_options_are_named_errors(tmp_path, clip, views):
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
 
 
+def test_frame_rates_no_clip_has_are_named_errors(clip, tmp_path):
+    from splatzoo.data.video import MAX_FPS
+
+    for bad in (1e308, 10 ** 400, float("inf"), -float("inf"), float("nan"), 0, -2, MAX_FPS * 1.01, "2", True):
+        with pytest.raises(VideoError, match="--fps") as e:
+            extract_frames(clip, tmp_path / "o", fps=bad)
+        assert "give a" in str(e.value)
+    # up to the clip's own rate and beyond it (to MAX_FPS): every frame, once
+    assert extract_frames(clip, tmp_path / "a", fps=12, progress=False).indices == list(range(24))
+    assert extract_frames(clip, tmp_path / "b", fps=MAX_FPS, progress=False).indices == list(range(24))
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("value", ["1e308", "inf", "nan", "0", "-1", "1e400"])
+def test_cli_sfm_fps_out_of_range_is_a_named_error(clip, tmp_path, value):
+    from typer.testing import CliRunner
+
+    from splatzoo.cli import app
+
+    res = CliRunner().invoke(app, ["sfm", str(clip), "--out", str(tmp_path / "o"), f"--fps={value}"])
+    assert isinstance(res.exception, VideoError), (res.output, res.exception)
+    assert "--fps" in str(res.exception)
+    assert not (tmp_path / "o").exists()
+
+
 def test_cli_refuses_frame_options_for_a_folder_and_bad_videos(tmp_path):
     from typer.testing import CliRunner
 

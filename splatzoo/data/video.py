@@ -27,6 +27,7 @@ VIDEO_SUFFIXES = {".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".mpe
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".gif"}
 SHARPNESS_WIDTH = 640          # frames are scored at most this wide, so the score does not depend on resolution
 DEFAULT_FPS = 2.0
+MAX_FPS = 1000.0               # no clip has more frames per second than this (a frame rate above it is not believed)
 VIDEO_JSON = "video.json"
 
 
@@ -86,10 +87,19 @@ def check_frame_options(fps=None, frames=None) -> tuple[float | None, int | None
         raise VideoError("give --fps or --frames, not both: --fps takes frames per second of video, --frames a "
                          "total count spread evenly over the clip")
     if fps is not None:
-        if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
-            raise VideoError(f"--fps {fps!r}: give a positive number of frames to keep per second of video "
+        number = not isinstance(fps, bool) and isinstance(fps, (int, float, np.integer, np.floating))
+        try:
+            fps = float(fps) if number else fps
+        except OverflowError:   # an integer too large for a float
+            fps = math.inf
+        if not number or not math.isfinite(fps) or fps <= 0:
+            raise VideoError(f"--fps {fps!r:.40}: give a positive number of frames to keep per second of video "
                              f"(e.g. {DEFAULT_FPS:g}; 1-5 suits a slow walk around the subject)")
-        return float(fps), None
+        if fps > MAX_FPS:
+            raise VideoError(f"--fps {fps:g}: more frames per second than any video has (at most {MAX_FPS:g}); give "
+                             f"a rate such as {DEFAULT_FPS:g} (1-5 suits a slow walk around the subject), the clip's "
+                             "own frame rate to keep every frame, or --frames N for a total count")
+        return fps, None
     if frames is not None:
         if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 3:
             raise VideoError(f"--frames {frames!r}: give a whole number of frames to keep, at least 3 (SfM needs "
@@ -140,7 +150,7 @@ def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | No
     cap = _open(cv2, path)
     try:
         video_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        video_fps = video_fps if math.isfinite(video_fps) and 0 < video_fps < 1000 else 0.0
+        video_fps = video_fps if math.isfinite(video_fps) and 0 < video_fps < MAX_FPS else 0.0
         expected = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         expected = expected if 0 < expected < 10 ** 8 else 0
         say(f"reading {path.name}: {expected or 'an unknown number of'} frames"
@@ -169,7 +179,8 @@ def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | No
     if fps is not None:
         if not video_fps:
             raise VideoError(f"{path} does not say its frame rate, so --fps cannot be applied; use --frames N")
-        count = int(round(n / video_fps * fps))
+        # every frame once the rate asked reaches the clip's (below it the ratio is under 1: no overflow)
+        count = n if fps >= video_fps else int(round(n * (fps / video_fps)))
         if count < 3:
             raise VideoError(f"--fps {fps:g} keeps only {count} frame{'s' if count != 1 else ''} of this "
                              f"{n / video_fps:.1f} s clip; SfM needs at least 3: raise --fps or use --frames N")
