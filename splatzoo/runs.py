@@ -682,12 +682,12 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
 @contextmanager
 def _restoring_on_failure(run: Run, made: bool):
     """A new run that fails (or is interrupted) before its first checkpoint gives the folder back to the run that
-    --overwrite set aside (the error then says so), or, refused before it wrote anything, removes the folder it
-    made (`made`: the folder did not exist before this command)."""
+    --overwrite set aside (the error then says so), or removes the folder it made (`made`: the folder did not exist
+    before this command), which holds nothing to resume from."""
     try:
         yield
     except BaseException as e:
-        if made and run.path.is_dir() and [p.name for p in run.path.iterdir()] == [LOCK_NAME]:
+        if made and run.path.is_dir() and not (run.checkpoint_path.exists() or run.model_path.exists()):
             shutil.rmtree(run.path, ignore_errors=True)  # the lock file goes too: the flock dies with its fd
         elif run.restore_replaced():
             note = f" The run that --overwrite was to replace is restored in {run.path}, unchanged."
@@ -746,6 +746,7 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
                                 f"(torchrun --nproc-per-node {cfg.nproc}), not {world}")
         if not scene.train:
             raise SplatzooError(f"scene {scene.name!r} has no training views")
+        _check_backend(cfg)
         state = out.checkpoint() if out.checkpoint_path.exists() else None
     else:
         if data is None:
@@ -792,17 +793,23 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
 def _check_can_start(scene, model: str, model_config, cfg: TrainConfig, initial=None) -> None:
     """What can still refuse a new run after its request is checked, asked before an old run is replaced: the
     backend (and its devices for --nproc) and the memory its primitives need."""
-    from .rasterizers import select_backend
     from .training.trainer import check_start
 
-    chosen = select_backend(cfg.backend)
-    device = chosen.torch_device()
+    check_start(scene, model, model_config, cfg, _check_backend(cfg),
+                initial=None if initial is None else initial.num_primitives)
+
+
+def _check_backend(cfg: TrainConfig) -> torch.device:
+    """The device of the run's backend, refused by name if the backend cannot run here or has too few GPUs for
+    --nproc (one process per GPU)."""
+    from .rasterizers import select_backend
+
+    device = select_backend(cfg.backend).torch_device()
     if cfg.nproc > 1 and device.type == "cuda" and cfg.nproc > torch.cuda.device_count():
         raise SplatzooError(f"--nproc {cfg.nproc} trains one process per GPU, but this machine has "
                             f"{torch.cuda.device_count()}; pass --nproc {max(1, torch.cuda.device_count())} or "
                             "--backend cpu")
-    check_start(scene, model, model_config, cfg, device,
-                initial=None if initial is None else initial.num_primitives)
+    return device
 
 
 def initial_model(path, model: str | None = None, model_options: dict | None = None):

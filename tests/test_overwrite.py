@@ -141,3 +141,29 @@ def test_compare_overwrite_refused_late_keeps_the_runs(tiny_data, tmp_path):
     assert r.exit_code != 0 and "Traceback" not in r.output
     assert "GiB" in str(r.exception) + r.output
     assert folder_digest(out) == before
+
+
+def test_resume_on_a_backend_that_cannot_run_here_is_refused_by_name(tiny_data, tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    run = tmp_path / "run"
+    train(tiny_data, "2dgs", {}, cfg(iterations=4, checkpoint_every=2), run, progress=False, stop_after=2)
+    before = folder_digest(run)
+    r = runner.invoke(app, ["train", "--resume", "--out", str(run), "--backend", "cuda"])
+    assert r.exit_code != 0 and "cuda" in str(r.exception).lower(), r.output
+    assert folder_digest(run) == before
+
+
+def test_a_full_disk_while_the_run_folder_is_made_is_named(tiny_data, tmp_path, monkeypatch):
+    """ENOSPC on the lock's note and on config.json: a named error, and no half-made folder left."""
+    import errno
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "pwrite", full)
+    monkeypatch.setattr(Path, "write_text", full)
+    out = tmp_path / "run"
+    with pytest.raises(SplatzooError, match="Free disk space"):
+        train(tiny_data, "2dgs", {}, cfg(), out, progress=False)
+    assert not out.exists()
