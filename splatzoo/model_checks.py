@@ -147,21 +147,21 @@ def check_surfel_count(model, scene, what: str) -> None:
 def seen_surfels(means: torch.Tensor, cameras, *, near: float, far: float, margin: float = VIEW_MARGIN) -> torch.Tensor:
     """[N] bool: which surfel centres (means [N,3]) some camera sees, in front of it between depths `near` and `far`
     and within `margin` image sizes of its image."""
-    means = means.detach().double().cpu()
+    means = means.detach().cpu().double()
     seen = torch.zeros(means.shape[0], dtype=torch.bool)
-    finite = torch.isfinite(means).all(1)
     for cam in cameras:
         w2c = cam.world_to_camera.detach().double().cpu()
         K = cam.K.detach().double().cpu()
-        p = means @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2]
-        ok = finite & (z > near) & (z < far)
-        zs = torch.where(ok, z, torch.ones_like(z))
-        u = K[0, 0] * p[:, 0] / zs + K[0, 1] * p[:, 1] / zs + K[0, 2]
-        v = K[1, 1] * p[:, 1] / zs + K[1, 2]
-        ok &= (u > -margin * cam.width) & (u < (1 + margin) * cam.width)
-        ok &= (v > -margin * cam.height) & (v < (1 + margin) * cam.height)
-        seen |= ok
+        z = means @ w2c[2, :3] + w2c[2, 3]
+        rows = ((z > near) & (z < far) & ~seen).nonzero().squeeze(1)  # NaN is never in range
+        if not rows.numel():
+            continue
+        p, z = means[rows] @ w2c[:2, :3].T + w2c[:2, 3], z[rows]
+        u = (K[0, 0] * p[:, 0] + K[0, 1] * p[:, 1]) / z + K[0, 2]
+        v = K[1, 1] * p[:, 1] / z + K[1, 2]
+        inside = (u > -margin * cam.width) & (u < (1 + margin) * cam.width)
+        inside &= (v > -margin * cam.height) & (v < (1 + margin) * cam.height)
+        seen[rows[inside]] = True
     return seen
 
 
@@ -186,11 +186,11 @@ def check_in_view(model, cameras, what: str, *, far: float | None = None,
     settings = getattr(model, "raster_settings", None)
     near = float(getattr(settings, "near", 0.2))
     far = depth_limit(cameras) if far is None else far
+    m = means.cpu().double()
     # the cameras one at a time: a model in view is usually seen by the first, so this stops early
     for cam in cameras:
-        if bool(seen_surfels(means, [cam], near=near, far=far).any()):
+        if bool(seen_surfels(m, [cam], near=near, far=far).any()):
             return
-    m = means.double().cpu()
     m = m[torch.isfinite(m).all(1)]
     centres = torch.stack([c.center.detach().double().cpu() for c in cameras])
     middle = centres.mean(0)
