@@ -436,3 +436,17 @@ def test_splat_files_without_rotations_say_how_many(tmp_path, packed):
     with pytest.warns(UserWarning, match=r"r.ksplat \(read through splat-transform\): 2 of its 20 surfels have a "
                                          "zero rotation quaternion"):
         load_source(tmp_path / "r.ksplat")
+
+
+def test_an_opacity_of_exactly_zero_or_one_in_another_tools_ply_is_not_damage(tmp_path):
+    """A logit of -inf / +inf is an opacity of 0 / 1 (what splat-transform reads from a compressed PLY's 8 bits)."""
+    from splatzoo.export import SATURATED_LOGIT
+
+    opacity = np.full(30, 1.0)
+    opacity[:3], opacity[3:5] = -np.inf, np.inf
+    model = load_ply(_third_party(tmp_path / "o.ply", opacity=opacity))
+    logits = model.logit_opacity.detach()
+    assert torch.isfinite(logits).all() and torch.all(logits[:3] == -SATURATED_LOGIT)
+    assert torch.all(logits[3:5] == SATURATED_LOGIT) and torch.all(logits[5:] == 1.0)
+    with pytest.raises(SplatzooError, match="every one of its 30 surfels has an opacity below 1/255"):
+        load_ply(_third_party(tmp_path / "none.ply", opacity=-np.inf))
