@@ -170,6 +170,11 @@ def make_options(options: dict | TexturedMeshOptions | None = None, **more) -> T
         base = dataclasses.asdict(options)
     else:
         base = {}
+        twice = [k for k in more if k in (options or {})]
+        if twice:  # one value would silently win over the other
+            raise SplatzooError(f"mesh texture option(s) {', '.join(twice)} given twice (in the options and as "
+                                f"keywords: {', '.join(f'{options[k]!r} and {more[k]!r}' for k in twice)}); give "
+                                "each once")
         more = {**(options or {}), **more}
     hints = typing.get_type_hints(TexturedMeshOptions)
     known = [f.name for f in dataclasses.fields(TexturedMeshOptions)]
