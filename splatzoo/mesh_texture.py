@@ -636,6 +636,46 @@ def _rows(fmt: str, a: np.ndarray) -> str:
     return buf.getvalue()
 
 
+def obj_companions(path) -> tuple[Path, Path]:
+    """The material and texture files a textured OBJ names beside itself: <stem>.mtl and <stem>.png."""
+    path = Path(path)
+    mtl, png = path.with_suffix(".mtl"), path.with_suffix(".png")
+    if path in (mtl, png):
+        raise SplatzooError(f"{path}: the OBJ needs a .obj suffix so its .mtl and .png get their own names")
+    return mtl, png
+
+
+def _head(path: Path, size: int = 4096) -> str:
+    """The start of a regular file as text ('' for anything else or on any error)."""
+    try:
+        if not path.is_file():
+            return ""
+        with open(path, "rb") as f:
+            return f.read(size).decode("utf-8", "replace")
+    except OSError:
+        return ""
+
+
+def check_obj_companions(path) -> None:
+    """Refuse to write a textured OBJ whose .mtl or .png name is taken by a file that is not the material or texture
+    of the OBJ already at `path` (one written here before, which the new OBJ replaces together with them). Run before
+    anything is written, so a refusal leaves every file as it was."""
+    path = Path(path)
+    mtl, png = obj_companions(path)
+    obj_head, mtl_head = _head(path), _head(mtl)
+    own_mtl = obj_head.startswith("# splatzoo mesh") and f"\nmtllib {mtl.name}\n" in obj_head
+    own = {mtl: own_mtl and mtl_head.startswith("# splatzoo material"),
+           png: own_mtl and mtl_head.startswith("# splatzoo material") and f"\nmap_Kd {png.name}\n" in mtl_head}
+    taken = [p for p in (mtl, png) if (p.exists() or p.is_symlink()) and not (own[p] and p.is_file())]
+    if taken:
+        names = " and ".join(str(p) for p in taken)
+        raise SplatzooError(f"the OBJ {path} names its material and texture {mtl.name} and {png.name} beside it, but "
+                            f"{names} already exist{'s' if len(taken) == 1 else ''} and "
+                            f"{'is' if len(taken) == 1 else 'are'} not the material or texture of an OBJ exported to "
+                            f"{path.name}; move {'it' if len(taken) == 1 else 'them'} away or choose another --out "
+                            f"name (nothing was written)")
+
+
 def write_obj(mesh: TexturedMesh, path) -> Path:
     """Write the mesh as a text OBJ atomically. With a texture: `<stem>.mtl` and `<stem>.png` beside it, named
     relatively in the OBJ (mtllib) and the MTL (map_Kd), written before the OBJ. Without one: vertex colours as
@@ -645,10 +685,8 @@ def write_obj(mesh: TexturedMesh, path) -> Path:
     parts = ["# splatzoo mesh\n", f"# {len(mesh.positions)} vertices, {len(mesh.faces)} triangles\n"]
     f = mesh.faces.astype(np.int64) + 1
     if mesh.texture is not None:
-        mtl, png = path.with_suffix(".mtl"), path.with_suffix(".png")
-        for p in (mtl, png):
-            if p == path:
-                raise SplatzooError(f"{path}: the OBJ needs a .obj suffix so its .mtl and .png get their own names")
+        mtl, png = obj_companions(path)
+        check_obj_companions(path)
         with atomic_path(png) as tmp:
             tmp.write_bytes(png_bytes(mesh.texture))
         with atomic_path(mtl) as tmp:
@@ -711,6 +749,8 @@ def export_textured_mesh(source, out, *, progress=None, **options) -> Path:
     if out.is_dir():
         raise SplatzooError(f"cannot write the mesh to {out}: it is a folder; give a file name such as "
                             f"{out / 'mesh.glb'}")
+    if out.suffix.lower() == ".obj":  # before the meshing, so that a refusal costs nothing and writes nothing
+        check_obj_companions(out)
     run = Run(source)
     with run.writing("splatzoo export", out, "--out FILE.glb"):
         model, scene, _ = run.load(opts.backend)
