@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .compare import ModelChoice, QuickPreset, _figure, _num, _save_figure, builtin_scene, compare
 from .errors import SplatzooError
-from .io import write_json, write_text
+from .io import say_progress, write_json, write_text
 
 
 # `--quick`: the whole default grid in well under an hour on 2 CPU cores (the grid sets the primitive counts)
@@ -46,6 +46,41 @@ def grid_choice(model: str, n_waves: int, options: dict | None = None) -> ModelC
     return ModelChoice(f"{model}:n_waves={n_waves}{extra}", model, {"n_waves": n_waves, **(options or {})})
 
 
+def wave_models() -> list[str]:
+    """The models a sweep can take: those whose config has n_waves (plugins that fail to load are left out)."""
+    import dataclasses
+
+    from .registry import MODELS
+
+    return [e.name for e in MODELS.entries()
+            if not e.broken and "n_waves" in {f.name for f in dataclasses.fields(e.spec.config_cls)}]
+
+
+def check_sweep_model(model: str, waves: list[int], model_options: dict | None = None) -> None:
+    """Refuse, before anything trains, a sweep that would not be what it says: a model without n_waves (every column
+    would be something else), n_waves among its options (the grid sets it), options that no column would use (a
+    grid of n_waves 0 only: the 2dgs model, which takes none of them) and options the model refuses."""
+    import dataclasses
+
+    from .zoo import get_model_spec, make_config
+
+    options = dict(model_options or {})
+    spec = get_model_spec(model)
+    if "n_waves" not in {f.name for f in dataclasses.fields(spec.config_cls)}:
+        raise SplatzooError(f"model {model!r} has no n_waves option, so a sweep over --n-waves cannot train it (n_waves "
+                            f"0 is the 2dgs model); sweep one of the wave models: {', '.join(wave_models())}, or "
+                            f"train {model} with `splatzoo train` or `splatzoo compare`")
+    if "n_waves" in options:
+        raise SplatzooError(f"n_waves={options['n_waves']} among the model options: the sweep sets n_waves from "
+                            f"--n-waves; give the counts there, e.g. --n-waves 0,{options['n_waves']}")
+    if options and not any(k > 0 for k in waves):
+        raise SplatzooError(f"--n-waves {','.join(map(str, waves))} trains only the 2dgs model, which takes none of "
+                            f"{model}'s options ({', '.join(options)}); add wave counts (e.g. --n-waves 0,4) or drop "
+                            "the options")
+    for k in (k for k in waves if k > 0):
+        make_config(model, n_waves=k, **options)  # an option or a count the model refuses, named before training
+
+
 def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2, 4, 8),
           num_primitives=(1000, 2000, 4000), iterations: int | None = None, quick: bool = False, seed: int = 0,
           backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
@@ -57,18 +92,15 @@ def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2
     Without `data` a built-in synthetic scene is rendered (sweater; --quick: 96x96, 16 views). Runs live in
     out/n<primitives>/runs/<label>; finished runs are reused, so an interrupted sweep picks up where it stopped.
     """
-    from .zoo import get_model_spec, make_config
-
     waves = parse_int_list(n_waves, "--n-waves")
     counts = parse_int_list(num_primitives, "--num-primitives")
     if 0 in counts:
         raise SplatzooError("--num-primitives values must be at least 1")
-    get_model_spec(model)
-    if any(k > 0 for k in waves):
-        try:
-            make_config(model, n_waves=max(waves), **(model_options or {}))
-        except TypeError as e:
-            raise SplatzooError(f"model {model!r} cannot be swept over n_waves ({e}); use a Gabor-family model") from e
+    check_sweep_model(model, waves, model_options)
+    if model_options and 0 in waves:
+        say_progress(progress)(f"note: n_waves 0 is the 2dgs model, trained without {model}'s options "
+                               f"({', '.join(f'{k}={v}' for k, v in model_options.items())}); the other columns "
+                               "take them")
     out = Path(out)
     preset = SWEEP_QUICK if quick else None
     if data is None:
