@@ -23,6 +23,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import statistics
 import sys
 import time
@@ -46,11 +47,107 @@ GPU_CONFIGS = (
 WAVES = ("0", "4", "4a")
 
 
+BACKEND_NAMES = ("cuda", "cpu", "reference")
+MAX_WAVES = 64      # far beyond any member (gabor stores at most 30); the memory check below bounds the rest
+MAX_TEXTURE = 64    # the native kernels' limit on a texture side
+MAX_REPEATS = 1000
+WAVES_SYNTAX = re.compile(r"^(\d+)(a?)(?:t(\d+))?(b?)$")
+WAVES_HELP = ("K waves (0, 4), Ka (K with per-surfel counts drawn from 0..K), KtT (K waves and a TxT texture), each "
+              "with an optional trailing b (Beta kernels), e.g. 0,4,4a,0t4,0b")
+
+
 def parse_waves(spec: str) -> tuple[int, bool, int, bool]:
-    """(K waves, adaptive counts, texture size T (0: none), Beta kernels) of a --waves entry such as 4a, 0t4 or 0b."""
-    beta = spec.endswith("b")
-    waves, _, tex = spec.removesuffix("b").partition("t")
-    return int(waves.rstrip("a")), waves.endswith("a"), int(tex or 0), beta
+    """(K waves, adaptive counts, texture size T (0: none), Beta kernels) of a --waves entry such as 4a, 0t4 or 0b;
+    anything else, or more than MAX_WAVES waves or MAX_TEXTURE texels a side, is a SplatzooError that says why."""
+    from splatzoo.errors import SplatzooError
+
+    match = WAVES_SYNTAX.match(spec.strip())
+    if match is None:
+        raise SplatzooError(f"--waves entry {spec!r} is not a wave count; write {WAVES_HELP}")
+    K, adaptive, tex, beta = match.groups()
+    if len(K) > 6 or int(K) > MAX_WAVES:  # (a long digit string is not parsed: past any bound anyway)
+        raise SplatzooError(f"--waves entry {spec!r} asks for {K if len(K) <= 6 else 'millions of'} waves per surfel; "
+                            f"the benchmark takes at most {MAX_WAVES} (the zoo's members hold at most 30)")
+    if tex is not None and (len(tex) > 6 or not 1 <= int(tex) <= MAX_TEXTURE):
+        raise SplatzooError(f"--waves entry {spec!r} asks for a texture of {tex if len(tex) <= 6 else 'millions of'} "
+                            f"texels a side; use 1 to {MAX_TEXTURE} (the rasterizer's limit), e.g. 0t4")
+    K, T = int(K), int(tex or 0)
+    return K, bool(adaptive), T, bool(beta)
+
+
+def scene_bytes(surfels: int, waves: str) -> int:
+    """About how much memory one benchmark scene takes at its peak: every per-surfel field (position, rotation,
+    scales, opacity, colour, falloff: 16 floats; 6 per wave; 4 per texel), four times over (the values, their
+    gradients, the copy on the backend's device, make_scene's temporaries)."""
+    K, _, T, _ = parse_waves(waves)
+    return surfels * (16 + 6 * K + 4 * T * T) * 4 * 4
+
+
+def _gpu_free_bytes() -> int | None:
+    try:
+        return int(torch.cuda.mem_get_info()[0]) if torch.cuda.is_available() else None
+    except RuntimeError:
+        return None
+
+
+def check_request(backends, waves, configs=CONFIGS, repeats: int = 3) -> tuple[list[str] | None, tuple[str, ...]]:
+    """Check a benchmark request before anything runs; returns (backends, waves) as run_benchmark takes them.
+    backends, waves: comma-separated text or lists (backends None: every one available here). A bad entry, a
+    backend that cannot run here or runs none of the scenes, a repeat count out of 1..MAX_REPEATS or a scene that
+    would not fit in memory is a SplatzooError that names it."""
+    from splatzoo.cli import available_memory
+    from splatzoo.errors import SplatzooError
+    from splatzoo.rasterizers import BACKENDS
+    from splatzoo.registry import closest
+
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or not 1 <= repeats <= MAX_REPEATS:
+        raise SplatzooError(f"--repeats {repeats!r}: give a whole number of timed repeats from 1 to {MAX_REPEATS} "
+                            "(the median is reported)")
+
+    def entries(value, option: str) -> list[str]:
+        items = [t.strip() for t in value.split(",")] if isinstance(value, str) else [str(t).strip() for t in value]
+        if not items or any(not t for t in items):
+            raise SplatzooError(f"{option} {value!r} has an empty entry; give a comma-separated list without gaps")
+        twice = sorted({t for t in items if items.count(t) > 1})
+        if twice:
+            raise SplatzooError(f"{option} {value!r} names {', '.join(twice)} twice; give each once")
+        return items
+
+    wave_list = entries(waves, "--waves")
+    for w in wave_list:
+        parse_waves(w)
+    if backends is not None:
+        backend_list = entries(backends, "--backends")
+        for b in backend_list:
+            if b not in BACKEND_NAMES:
+                raise SplatzooError(f"unknown backend {b!r} in --backends; the rasterizer backends are "
+                                    f"{', '.join(BACKEND_NAMES)}" + closest(b, BACKEND_NAMES))
+            reason = BACKENDS.get(b).unavailable_reason()
+            if reason is not None:
+                raise SplatzooError(f"--backends {b}: the {b} backend cannot run here ({reason}); leave it out")
+    else:
+        backend_list = [b for b in BACKEND_NAMES if BACKENDS.get(b).available()]
+    for b in backend_list:
+        if not any(b in allowed for *_, allowed in configs):
+            scenes = ", ".join(f"{c[0]} ({'/'.join(c[-1])})" for c in configs)
+            raise SplatzooError(f"none of the chosen scenes runs on the {b} backend (scenes: {scenes}); choose "
+                                "other scenes (--quick, --gpu or neither) or other --backends")
+    if not backend_list:
+        raise SplatzooError("no backend can run here; see `splatzoo bench --help` for --backends")
+    budgets = [("memory", available_memory())]
+    if "cuda" in backend_list:
+        budgets.append(("GPU memory", _gpu_free_bytes()))
+    for name, _, _, _, n, allowed in configs:
+        if not set(allowed) & set(backend_list):
+            continue
+        for w in wave_list:
+            need = scene_bytes(n, w)
+            for what, have in budgets:
+                if have is not None and need > have:
+                    raise SplatzooError(f"--waves {w} on the scene {name} needs about {need / 2**30:.1f} GiB of "
+                                        f"{what}, more than the {have / 2**30:.1f} GiB free; use fewer waves or a "
+                                        "smaller texture, or --quick")
+    return (backend_list if backends is not None else None), tuple(wave_list)
 
 
 def make_scene(kind: str, n: int, width: int, height: int, waves: str, seed: int = 0, dtype=torch.float32):
@@ -110,11 +207,16 @@ def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3,
                   json_path: str | os.PathLike | None = None, echo=print, antialias=("off",)) -> dict:
     """Run every (config, backend, waves, antialias) and return {"machine": ..., "results": [...]}; optionally write
     JSON. antialias: "off" and/or "on" (the pixel-footprint filter)."""
+    from splatzoo.cli import check_output_file
+    from splatzoo.io import atomic_path
     from splatzoo.rasterizers import BACKENDS, rasterize
     from splatzoo.rasterizers.common import ANTIALIASED, SETTINGS
 
+    backends, waves = check_request(backends, waves, configs, repeats)
+    if json_path is not None:  # before the benchmark, not after it
+        check_output_file(json_path, "--json")
     if backends is None:
-        backends = [b for b in ("cuda", "cpu", "reference") if BACKENDS.get(b).available()]
+        backends = [b for b in BACKEND_NAMES if BACKENDS.get(b).available()]
     threads = torch.get_num_threads()
     results = []
     header = f"{'scene':<22}{'backend':<11}{'K':>3}{'AA':>4}{'fwd ms':>11}{'fwd+bwd ms':>12}{'pairs':>14}{'Mpairs/s':>11}"
@@ -160,10 +262,8 @@ def run_benchmark(backends=None, waves=WAVES, configs=CONFIGS, repeats: int = 3,
     _summary(results, echo)
     if json_path is not None:
         path = Path(json_path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(json.dumps(report, indent=2))
-        tmp.replace(path)  # never leave a half-written file
+        with atomic_path(path) as tmp:  # never leave a half-written file
+            tmp.write_text(json.dumps(report, indent=2))
         echo(f"wrote {path}")
     return report
 
@@ -209,10 +309,14 @@ def main(argv=None) -> int:
     modes = tuple(args.antialias.split(","))
     if not modes or set(modes) - {"off", "on"}:
         ap.error("--antialias takes off, on or off,on")
-    backends = args.backends.split(",") if args.backends else None
     configs = CONFIGS[:2] if args.quick else GPU_CONFIGS if args.gpu else CONFIGS
-    run_benchmark(backends=backends, waves=tuple(args.waves.split(",")), configs=configs, repeats=args.repeats,
-                  json_path=args.json, antialias=modes)
+    from splatzoo.errors import SplatzooError
+
+    try:
+        run_benchmark(backends=args.backends, waves=args.waves, configs=configs, repeats=args.repeats,
+                      json_path=args.json, antialias=modes)
+    except SplatzooError as e:
+        ap.error(str(e))
     return 0
 
 

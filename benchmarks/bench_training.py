@@ -207,6 +207,77 @@ def _row(label: str, r: dict) -> str:
             f"{f('peak_gpu_gib', '.2f'):>9}")
 
 
+MAX_SIDE = 16384  # a synthetic scene's image side: 16K, far past the paper's 1080p
+
+
+def check_request(*, data=None, size: str = "1920x1080", views: int = 120, iterations: int = 30000,
+                  models: str = "2dgs,gabor", backend: str = "auto", gsplat_examples=None,
+                  synthetic: bool = False) -> list[str]:
+    """Check what `splatzoo bench --training` asks for before anything is rendered or trained, and return the
+    arguments of run(). A size beyond MAX_SIDE or beyond this machine's memory, a model that does not exist, a
+    missing dataset or gsplat folder is a SplatzooError that names it. synthetic: --size or --views were typed
+    (they shape the synthetic scene, so they cannot go with --data)."""
+    from splatzoo.cli import available_memory, describe_path
+    from splatzoo.errors import SplatzooError
+    from splatzoo.registry import MODELS
+
+    width, _, height = size.lower().partition("x")
+    if not (width.strip().isdigit() and height.strip().isdigit()):
+        raise SplatzooError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 1920x1080; got {size!r}")
+    width, height = int(width), int(height)
+    if not (8 <= width <= MAX_SIDE and 8 <= height <= MAX_SIDE):
+        raise SplatzooError(f"--size {size}: give 8 to {MAX_SIDE} pixels a side, e.g. 1920x1080")
+    if isinstance(views, bool) or not 2 <= views <= 100000:
+        raise SplatzooError(f"--views {views}: a synthetic scene needs 2 to 100000 views (every 8th is a test view)")
+    # the rendered views (8-bit, with alpha) held at once, and one float32 render's buffers
+    need = views * width * height * 4 + width * height * 128
+    have = available_memory()
+    if data is None and have is not None and need > have:
+        raise SplatzooError(f"--size {size} with {views} views needs about {need / 2**30:.1f} GiB of memory, more than "
+                            f"the {have / 2**30:.1f} GiB free; use a smaller --size or fewer --views")
+    if isinstance(iterations, bool) or iterations < 1:
+        raise SplatzooError(f"--iterations {iterations}: train each model for at least 1 iteration")
+    names = [m.strip() for m in models.split(",")]
+    if not names or any(not m for m in names):
+        raise SplatzooError(f"--models {models!r} has an empty entry; give comma-separated model names, e.g. "
+                            "2dgs,gabor")
+    twice = sorted({m for m in names if names.count(m) > 1})
+    if twice:
+        raise SplatzooError(f"--models {models!r} names {', '.join(twice)} twice; give each once")
+    for m in names:
+        if ":" in m or "=" in m:
+            raise SplatzooError(f"--models {m!r}: the training benchmark trains each model with its defaults; give "
+                                "model names only (see `splatzoo models`)")
+        MODELS.get(m)  # an unknown name lists the known ones
+    if backend not in ("auto", "cpu", "cuda", "reference"):
+        from splatzoo.registry import closest
+
+        raise SplatzooError(f"--backend {backend!r}: use auto, cpu, cuda or reference"
+                            + closest(backend, ("auto", "cpu", "cuda", "reference")))
+    if backend != "auto":
+        from splatzoo.rasterizers import BACKENDS
+
+        BACKENDS.get(backend).check()  # says why it cannot run here
+    argv = ["--width", str(width), "--height", str(height), "--views", str(views), "--iterations", str(iterations),
+            "--models", ",".join(names), "--backend", backend]
+    if data is not None:
+        if synthetic:
+            raise SplatzooError("--size and --views shape the synthetic scene; with --data the dataset's own images "
+                                "are used: drop them or --data")
+        what = describe_path(data)
+        if what is not None or not Path(data).is_dir():
+            raise SplatzooError(f"--data {data} {what or 'is a file'}; give a dataset folder (COLMAP or "
+                                "transforms.json)")
+        argv += ["--data", str(data)]
+    if gsplat_examples is not None:
+        script = Path(gsplat_examples) / "simple_trainer_2dgs.py"
+        if not script.is_file():
+            raise SplatzooError(f"--gsplat-examples {gsplat_examples}: {script} not found; give gsplat's examples "
+                                "folder (the one holding simple_trainer_2dgs.py)")
+        argv += ["--gsplat-examples", str(gsplat_examples)]
+    return argv
+
+
 def run(argv: list[str] | None = None, echo=print) -> dict:
     ap = argparse.ArgumentParser(prog="bench_training", description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, help="a dataset folder (COLMAP or transforms); default: a synthetic scene")
@@ -222,6 +293,16 @@ def run(argv: list[str] | None = None, echo=print) -> dict:
     ap.add_argument("--work", type=Path, default=Path("benchmarks/results/training"))
     ap.add_argument("--json", type=Path, help="write the results here (default: WORK/training.json)")
     args = ap.parse_args(argv)
+    from splatzoo.cli import check_output_file
+    from splatzoo.errors import SplatzooError
+    from splatzoo.io import atomic_path
+
+    try:  # everything that can be refused is refused before the scene is rendered
+        check_request(data=args.data, size=f"{args.width}x{args.height}", views=args.views, iterations=args.iterations,
+                      models=args.models, backend=args.backend)  # a missing gsplat trainer is a row of the report
+        out = check_output_file(args.json or args.work / "training.json", "--json")
+    except SplatzooError as e:
+        ap.error(str(e))
     gpu = torch.cuda.is_available() and args.backend in ("auto", "cuda")
     backend = resolve_backend(args.backend, torch.device("cuda" if gpu else "cpu"))
     device = torch.device("cuda" if backend == "cuda" else "cpu")
@@ -242,7 +323,7 @@ def run(argv: list[str] | None = None, echo=print) -> dict:
                      "size": [view.width, view.height], "train": {}, "breakdown": {}}
     echo(f"{'trainer':<15}{'train min':>10}{'all min':>9}{'it/s':>8}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'FPS':>9}{'surfels':>10}"
          f"{'GPU GiB':>9}")
-    models = [m for m in args.models.split(",") if m]
+    models = [m.strip() for m in args.models.split(",")]
     # one-time costs (the native extension, LPIPS weights) before anything is timed
     train_end_to_end(data, models[0], 2, backend, work / "warm-up")
     for model in models:
@@ -266,8 +347,8 @@ def run(argv: list[str] | None = None, echo=print) -> dict:
             results["breakdown"][model] = b
             echo(f"{model:<8}{b['step_ms']:>8.1f}" + "".join(f"{b['parts_ms'][p]:>12.2f}" for p in PARTS)
                  + f"{b['host_syncs_per_step']:>7}")
-    out = args.json or work / "training.json"
-    out.write_text(json.dumps(results, indent=1, default=str))
+    with atomic_path(out) as tmp:  # never a half-written file
+        tmp.write_text(json.dumps(results, indent=1, default=str))
     echo(f"# wrote {out}")
     return results
 

@@ -154,6 +154,70 @@ def synth_command(
 
 # --- rasterizer benchmark (splatzoo bench) ----------------------------------------------------------------
 # (bench command goes here)
+def describe_path(path) -> str | None:
+    """What `path` is when it is not a regular file or a folder ("does not exist", "is a FIFO (named pipe)", ...);
+    None for a regular file or a folder."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "does not exist"
+    except NotADirectoryError:
+        return "does not exist (a folder on its way is a file)"
+    except OSError as e:
+        return f"cannot be looked up ({e.strerror or e})"
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return None
+    kinds = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+             (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+    return "is " + next((what for test, what in kinds if test(mode)), "not a regular file")
+
+
+def check_output_file(path, option: str) -> Path:
+    """Refuse, before any work, an output file that cannot be written: a folder, a FIFO or device, a path under a
+    file, a folder that does not take new files (read-only, /proc). Writes nothing: a probe file is made in the
+    nearest existing folder and removed at once."""
+    import tempfile
+
+    path = Path(path)
+    what = describe_path(path)
+    if what is None and path.is_dir():
+        raise SplatzooError(f"{option} {path} is a folder; give a file name such as {path / 'results.json'}")
+    if what is not None and not what.startswith("does not exist"):
+        raise SplatzooError(f"{option} {path} {what}, not a file to write; give a file name in a folder you can "
+                            "write to")
+    folder = path.absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise SplatzooError(f"{option} {path}: {folder} is a file, not a folder; give a path in a folder you can "
+                            "write to")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".splatzoo-write-check.", dir=folder)
+        os.close(fd)
+        os.remove(probe)
+    except OSError as e:
+        raise SplatzooError(f"{option} {path} cannot be written: {folder} does not take new files "
+                            f"({e.strerror or e}); give a path in a folder you can write to") from None
+    return path
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this machine can still hand out (Linux: MemAvailable), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
 def _bench_module(name: str):
     """benchmarks/<name>.py of the source checkout, imported."""
     import importlib.util
@@ -167,61 +231,96 @@ def _bench_module(name: str):
     return module
 
 
+# the options of each of bench's three benchmarks (the rasterizer's, --fps RUN and --training)
+_BENCH_RASTER = {"repeats": "--repeats", "backends": "--backends", "waves": "--waves", "quick": "--quick",
+                 "gpu": "--gpu"}
+_BENCH_TRAINING = {"data": "--data", "size": "--size", "views": "--views", "iterations": "--iterations",
+                   "models": "--models", "gsplat_examples": "--gsplat-examples"}
+
+
+def _refuse_options(given: set[str], options: dict[str, str], what: str, why: str) -> None:
+    """Options typed for another benchmark are refused by name, not ignored."""
+    stray = [flag for name, flag in options.items() if name in given]
+    if stray:
+        one = len(stray) == 1
+        raise SplatzooError(f"{' and '.join(stray)} {'does' if one else 'do'} not apply to {what} ({why}); drop "
+                            f"{'it' if one else 'them'}")
+
+
 @app.command("bench")
 def bench_command(
+    ctx: typer.Context,
     json_path: str = typer.Option("benchmarks/results/rasterizer.json", "--json", help="Where to write the JSON results."),
-    repeats: int = typer.Option(3, help="Timed repeats per measurement (the median is reported)."),
+    repeats: int = typer.Option(3, help="Timed repeats per measurement (the median is reported), 1 to 1000."),
     backends: Optional[str] = typer.Option(None, help="Comma-separated subset of cuda,cpu,reference (default: all available)."),
     waves: str = typer.Option("0,4,4a", help="Comma-separated wave counts: 0 (2DGS), 4 (gabor), 4a (4 with mixed "
                               "per-surfel counts), 0t4 (a 4x4 texture); a trailing b: Beta kernels. The zoo's "
-                              "members: 0,0b,4,6,0t4."),
+                              "members: 0,0b,4,6,0t4. At most 64 waves and 64x64 texels."),
     quick: bool = typer.Option(False, "--quick", help="Only the 128x128 scenes (5k surfels, sparse and dense)."),
     gpu: bool = typer.Option(False, "--gpu", help="The 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)."),
-    fps: Optional[Path] = typer.Option(None, "--fps", metavar="RUN",
+    fps: Optional[Path] = typer.Option(None, "--fps", metavar="RUN", callback=_path_arg,
                                        help="Instead: the frame rate of a trained run, at its test views' size and at "
                                        "1080 lines, image-only (as a viewer shows it) and with every output."),
     backend: str = typer.Option("auto", "--backend", help="The backend of --fps and --training: auto, cpu or cuda."),
     training: bool = typer.Option(False, "--training", help="Instead: whole training runs of 2dgs and gabor at paper "
                                   "scale (benchmarks/bench_training.py): time, it/s, metrics, peak GPU memory, and a "
                                   "breakdown of a step."),
-    data: Optional[Path] = typer.Option(None, "--data", help="--training: a dataset (default: a synthetic scene)."),
-    size: str = typer.Option("1920x1080", "--size", help="--training: the synthetic scene's WIDTHxHEIGHT."),
+    data: Optional[Path] = typer.Option(None, "--data", callback=_path_arg,
+                                        help="--training: a dataset (default: a synthetic scene)."),
+    size: str = typer.Option("1920x1080", "--size", help="--training: the synthetic scene's WIDTHxHEIGHT (8 to "
+                             "16384 a side)."),
     views: int = typer.Option(120, "--views", help="--training: the synthetic scene's views."),
     iterations: int = typer.Option(30000, "--iterations", help="--training: iterations per model."),
     models: str = typer.Option("2dgs,gabor", "--models", help="--training: comma-separated models."),
-    gsplat_examples: Optional[Path] = typer.Option(None, "--gsplat-examples", help="--training: gsplat's examples "
-                                                   "folder, to run its 2DGS trainer on the same data too."),
+    gsplat_examples: Optional[Path] = typer.Option(None, "--gsplat-examples", callback=_path_arg,
+                                                   help="--training: gsplat's examples folder, to run its 2DGS "
+                                                   "trainer on the same data too."),
 ) -> None:
     """Benchmark the rasterizer backends (forward, forward+backward, pairs per second) and write a JSON report; or,
-    with --fps RUN, the frame rate of a trained run; or, with --training, whole training runs."""
+    with --fps RUN, the frame rate of a trained run; or, with --training, whole training runs.
+
+    Everything asked for is checked before anything runs: an option of another benchmark, a bad list entry or an
+    output file that cannot be written is an error, not a surprise at the end."""
+    given = _given(ctx)
+    if fps is not None and training:
+        raise SplatzooError("--fps RUN and --training are different benchmarks; pass one of them")
     if training:
-        width, _, height = size.lower().partition("x")
-        if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
-            raise SplatzooError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 1920x1080; got {size!r}")
-        argv = ["--width", width, "--height", height, "--views", str(views), "--iterations", str(iterations),
-                "--models", models, "--backend", backend]
-        argv += ["--data", str(data)] if data is not None else []
-        argv += ["--gsplat-examples", str(gsplat_examples)] if gsplat_examples is not None else []
-        argv += ["--json", json_path] if json_path != "benchmarks/results/rasterizer.json" else []
-        _bench_module("bench_training").run(argv, echo=typer.echo)
+        _refuse_options(given, _BENCH_RASTER, "--training", "the rasterizer benchmark's options")
+        bench = _bench_module("bench_training")
+        argv = bench.check_request(data=data, size=size, views=views, iterations=iterations, models=models,
+                                   backend=backend, gsplat_examples=gsplat_examples,
+                                   synthetic="size" in given or "views" in given)
+        if "json_path" in given:
+            argv += ["--json", str(check_output_file(json_path, "--json"))]
+        bench.run(argv, echo=typer.echo)
         return
     if fps is not None:
+        _refuse_options(given, {**_BENCH_RASTER, **_BENCH_TRAINING, "json_path": "--json"}, "--fps RUN",
+                        "it prints the run's frame rates and writes no file")
         from .evaluate import fps_report
         from .runs import load_run
 
+        what = describe_path(fps)
+        if what is not None or not fps.is_dir():
+            raise SplatzooError(f"--fps {fps} {what or 'is a file'}; give a run folder written by `splatzoo train`")
         model, scene, _ = load_run(fps, backend)
-        views = scene.test or scene.train
-        for row in fps_report(model, [v.camera for v in views], scene.background, backend):
+        test_views = scene.test or scene.train
+        for row in fps_report(model, [v.camera for v in test_views], scene.background, backend):
             typer.echo(f"{row['label']:>11s} {row['size']:>10s}: {row['fps_image']:7.2f} FPS image-only, "
                        f"{row['fps_full']:7.2f} FPS with every output ({backend} backend)")
         return
 
+    _refuse_options(given, _BENCH_TRAINING, "the rasterizer benchmark", "options of --training")
+    _refuse_options(given, {"backend": "--backend"}, "the rasterizer benchmark",
+                    "it is for --fps RUN and --training; the rasterizer benchmark's backends are chosen with --backends")
     if quick and gpu:
         raise SplatzooError("--quick and --gpu choose different scenes: pass one of them")
     bench = _bench_module("bench_rasterizer")
     configs = bench.CONFIGS[:2] if quick else bench.GPU_CONFIGS if gpu else bench.CONFIGS
-    bench.run_benchmark(backends=backends.split(",") if backends else None, waves=tuple(waves.split(",")),
-                        configs=configs, repeats=repeats, json_path=json_path, echo=typer.echo)
+    chosen_backends, chosen_waves = bench.check_request(backends, waves, configs, repeats)
+    check_output_file(json_path, "--json")
+    bench.run_benchmark(backends=chosen_backends, waves=chosen_waves, configs=configs, repeats=repeats,
+                        json_path=json_path, echo=typer.echo)
 
 
 # --- training and evaluation (train, eval, render, compare) ---------------------------------------------
@@ -261,11 +360,31 @@ _DATA_FOR_FILE = typer.Option(None, "--data", "-d", help="dataset to use when RU
 
 
 def _model_file(run: Path, data: Optional[Path]) -> bool:
-    """Whether RUN names a model file (then --data is needed); --data with a run folder is an error."""
+    """Whether RUN names a model file (then --data is needed); --data with a run folder is an error. A RUN that is
+    neither (missing, a FIFO, a device, a folder that holds no run) is named for what it is."""
+    what = describe_path(run)
+    if what == "does not exist":
+        from .registry import closest
+
+        try:
+            near = closest(run.name, [p.name for p in run.parent.iterdir()])
+        except OSError:
+            near = ""
+        raise SplatzooError(f"{run} does not exist; give a run folder written by `splatzoo train` (its --out) "
+                            f"or a model file (.ply, .pt) with --data{near}")
+    if what is not None:
+        raise SplatzooError(f"{run} {what}, not a run folder or a model file; give a run folder written by "
+                            "`splatzoo train` (its --out) or a model file (.ply, .pt) with --data")
     if run.is_file():
         return True
     if data is not None:
-        raise typer.BadParameter(f"--data is for a model file; the run {run} is scored on its own dataset")
+        from .runs import Run
+
+        if Run(run).status in ("new", "foreign"):
+            raise SplatzooError(f"{run} is a folder that holds no splatzoo run (no config.json), and --data scores a "
+                                "model file: give the model file itself (.ply, .pt) with --data, or a run folder "
+                                "written by `splatzoo train` without --data")
+        raise typer.BadParameter(f"--data is for a model file; the run {run} is scored on its own dataset, drop --data")
     return False
 
 
@@ -368,6 +487,7 @@ def train_command(
     from .options import model_spec
 
     given = _given(ctx)
+    data, extra = _data_and_model_args(data, ctx.args)
     model, inline_options = model_spec(model)
     if init_from is not None and "model" not in given and not resume:  # the file's model
         from .runs import initial_model
@@ -388,8 +508,8 @@ def train_command(
         scene_options = _scene_options(resolution, max_width, test_every, background, white_background)
         if skip_missing:
             scene_options["skip_missing"] = True
-        result = _train(ctx, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch,
-                        init_from)
+        result = _train(extra, data, model, inline_options, out, resume, overwrite, given, values, scene_options,
+                        watch, init_from)
     except BaseException:
         if watch is not None:
             watch.viewer.stop()
@@ -403,17 +523,38 @@ def train_command(
             typer.echo("viewer stopped")
 
 
-def _train(ctx, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch,
+def _data_and_model_args(data: Optional[Path], args: list[str]) -> tuple[Optional[Path], list[str]]:
+    """The command line puts the first word it does not know in DATA: `train --n-waves 8 DATA` gives DATA
+    '--n-waves'. Such a word goes back to the model options, where the real DATA is found again among them."""
+    if data is not None and str(data).startswith("-"):
+        return None, [str(data), *args]
+    return data, list(args)
+
+
+def _model_options(model: str, inline: dict, args: list[str], data: Optional[Path]) -> tuple[dict, Optional[Path]]:
+    """The model options typed inline and as flags (each once), and DATA when it came among the flags."""
+    from .options import merge_options, parse_model_args
+
+    words: list[str] = []
+    options = merge_options(inline, parse_model_args(model, args, positionals=words), model)
+    if data is None and words:
+        data, words = Path(_path_arg(words[0])), words[1:]
+    if words:
+        raise typer.BadParameter(f"unexpected argument(s) {' '.join(map(repr, words))}: give one DATA folder "
+                                 f"({data}) and the model's options as flags (e.g. --n-waves 8)")
+    return options, data
+
+
+def _train(extra, data, model, inline_options, out, resume, overwrite, given, values, scene_options, watch,
            init_from=None):
-    from .options import parse_model_args
     from .runs import Run, train
     from .training import TrainConfig
 
     if resume:  # only what was typed is checked against the run; the rest comes from its record
         run = Run(out)
         options_model = model if "model" in given or run.status in ("new", "foreign") else run.record()["model"]
-        result = train(data, model if "model" in given else None,
-                       {**inline_options, **parse_model_args(options_model, list(ctx.args))},
+        options, data = _model_options(options_model, inline_options, extra, data)
+        result = train(data, model if "model" in given else None, options,
                        {k: v for k, v in values.items() if k in given}, out, resume=True,
                        scene_options={k: v for k, v in scene_options.items()
                                       if {"resolution": {"resolution"}, "max_width": {"max_width"},
@@ -421,10 +562,10 @@ def _train(ctx, data, model, inline_options, out, resume, overwrite, given, valu
                                           "background": {"background", "white_background"}}[k] & given},
                        watch=watch, init_from=init_from)
     else:
+        options, data = _model_options(model, inline_options, extra, data)
         if data is None:
             raise typer.BadParameter("give the dataset folder DATA (only --resume can take it from the run)")
-        result = train(data, model, {**inline_options, **parse_model_args(model, list(ctx.args))},
-                       TrainConfig(**values), out,
+        result = train(data, model, options, TrainConfig(**values), out,
                        overwrite=overwrite, scene_options=scene_options, watch=watch, init_from=init_from)
     return result
 
@@ -616,12 +757,12 @@ def sweep_command(
 ) -> None:
     """Measure the speed / accuracy trade: train every (n_waves, primitives) pair without densification and write
     sweep.json, pareto.png and report.md. Other model options follow, e.g. `--prune-waves 0.01`."""
-    from .options import model_spec, parse_model_args
+    from .options import model_spec
     from .sweep import sweep
 
     model, inline_options = model_spec(model)
-    options = {**inline_options, **parse_model_args(model, list(ctx.args))}
-    options.pop("n_waves", None)
+    data, extra = _data_and_model_args(data, ctx.args)
+    options, data = _model_options(model, inline_options, extra, data)
     sweep(data, out, model=model, n_waves=n_waves, num_primitives=num_primitives, iterations=iterations,
           quick=quick, seed=seed, backend=backend, synthetic_scene=scene, model_options=options, overwrite=overwrite,
           antialias=antialias, scene_options=_scene_options(resolution, max_width, test_every, background, white_background))
