@@ -109,7 +109,8 @@ def repair_geometry(model) -> list[str]:
         collapsed = s.amax(1) < COLLAPSED_LOG_SCALE
         if bool(collapsed.any()) and not bool(collapsed.all()):
             notes.append(f"{int(collapsed.sum())} of its {n} surfels have collapsed to a point (log-scales below "
-                         f"{COLLAPSED_LOG_SCALE:g}): they draw at most a dot, nothing with the pixel-footprint filter")
+                         f"{COLLAPSED_LOG_SCALE:g}): they draw at most a dot, nothing with the pixel-footprint filter. "
+                         "Remove them (or export the model again)")
     return notes
 
 
