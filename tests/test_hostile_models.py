@@ -126,6 +126,18 @@ def test_commands_refuse_a_model_that_draws_nothing(tmp_path):
     assert not (tmp_path / "run" / "model.pt").exists()
     with pytest.raises(SplatzooError, match="holds 0 surfels"):
         viewer_source(empty)
+    # the scene checks take a loaded dataset as it is
+    from splatzoo.data import load_scene
+
+    scene = load_scene(data)
+    check_fits_scene(_model(n=40, spread=0.2), scene, "m.ply")
+    far = _model()
+    with torch.no_grad():
+        far.means.add_(torch.tensor([1e11, 0.0, 0.0]))
+    with pytest.raises(SplatzooError, match="none of its 40 surfels lies in front"):
+        check_fits_scene(far, scene, "m.ply")
+    with pytest.raises(SplatzooError, match=f"more than the {surfel_limit(scene):,} pixels"):
+        check_fits_scene(_model(n=surfel_limit(scene) + 1, spread=0.2), scene, "m.ply")
 
 
 # --- geometry the rasterizer would change without a word ------------------------------------------------------
