@@ -746,7 +746,7 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
                                 f"(torchrun --nproc-per-node {cfg.nproc}), not {world}")
         if not scene.train:
             raise SplatzooError(f"scene {scene.name!r} has no training views")
-        _check_backend(cfg)
+        _check_backend(cfg, spawn=world <= 1)
         state = out.checkpoint() if out.checkpoint_path.exists() else None
     else:
         if data is None:
@@ -780,7 +780,7 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
             raise SplatzooError(f"scene {scene.name!r} has no training views")
         for note in getattr(scene, "notes", ()):
             print(note, file=sys.stderr, flush=True)
-        _check_can_start(scene, model, model_config, cfg, initial)
+        _check_can_start(scene, model, model_config, cfg, initial, spawn=world <= 1)
         out.set_aside()  # deleted at the new run's first checkpoint, restored if it fails before
         record = make_record(scene, scene_options, model, model_config, cfg)
         if initial is not None:
@@ -790,21 +790,26 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
     return scene, model, model_config, cfg, state
 
 
-def _check_can_start(scene, model: str, model_config, cfg: TrainConfig, initial=None) -> None:
+def _check_can_start(scene, model: str, model_config, cfg: TrainConfig, initial=None, *, spawn: bool) -> None:
     """What can still refuse a new run after its request is checked, asked before an old run is replaced: the
     backend (and its devices for --nproc) and the memory its primitives need."""
     from .training.trainer import check_start
 
-    check_start(scene, model, model_config, cfg, _check_backend(cfg),
+    check_start(scene, model, model_config, cfg, _check_backend(cfg, spawn=spawn),
                 initial=None if initial is None else initial.num_primitives)
 
 
-def _check_backend(cfg: TrainConfig) -> torch.device:
+def _check_backend(cfg: TrainConfig, *, spawn: bool) -> torch.device:
     """The device of the run's backend, refused by name if the backend cannot run here or has too few GPUs for
-    --nproc (one process per GPU)."""
+    --nproc (one process per GPU). spawn: this process starts the --nproc ranks (not a launcher such as torchrun,
+    whose ranks may span machines), which on the CPU share this machine's cores."""
     from .rasterizers import select_backend
 
     device = select_backend(cfg.backend).torch_device()
+    cores = os.cpu_count() or 1
+    if spawn and device.type == "cpu" and cfg.nproc > cores:
+        raise SplatzooError(f"--nproc {cfg.nproc} starts {cfg.nproc} processes that share this machine's {cores} "
+                            f"CPU cores; pass --nproc {cores} or fewer")
     if cfg.nproc > 1 and device.type == "cuda" and cfg.nproc > torch.cuda.device_count():
         raise SplatzooError(f"--nproc {cfg.nproc} trains one process per GPU, but this machine has "
                             f"{torch.cuda.device_count()}; pass --nproc {max(1, torch.cuda.device_count())} or "

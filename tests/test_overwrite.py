@@ -64,6 +64,7 @@ def test_a_finished_run_at_rest_is_byte_identical_after_a_command(run, tiny_data
     (["--nproc", "2", "--backend", "cuda"], "cuda"),
     (["--max-primitives", "1000000000"], "GiB"),
     (["-n", "1000000000", "--no-densify"], "GiB"),
+    (["--nproc", "99999999999999999999999"], "CPU cores"),
 ])
 def test_overwrite_refused_late_keeps_the_finished_run(run, tiny_data, args, says):
     if "cuda" in args and torch.cuda.is_available():
