@@ -1,4 +1,7 @@
-"""PlayCanvas splat-transform, the converter behind `splatzoo export --format spz | sog | compressed-ply`.
+"""PlayCanvas splat-transform, the converter behind `splatzoo export --format spz | sog | compressed-ply`, and the
+reader of SPZ, SOG, compressed PLY, .splat and .ksplat files for every command that reads a model
+(`read_splat_file`). When it fails, a message gives its own Error line (never its Node.js stack) and names the
+user's file and its format.
 
 The CLI is a Node.js program, pinned in tools/splat-transform/package.json (installed with
 `npm ci --prefix tools/splat-transform`, which scripts/install.sh does). It is found, in order, at:
