@@ -36,6 +36,7 @@ import torch
 
 from .errors import SplatzooError
 from .io import json_line, read_json, read_torch, torch_save, write_json, write_text
+from .model_checks import check_fits_scene
 from .training import TrainConfig, Trainer
 from .training.trainer import test_psnr
 
@@ -780,6 +781,8 @@ def _prepare(out: Run, data, model, model_options, config, scene_options, *, res
             raise SplatzooError(f"scene {scene.name!r} has no training views")
         for note in getattr(scene, "notes", ()):
             print(note, file=sys.stderr, flush=True)
+        if initial is not None:
+            check_fits_scene(initial, scene, f"--init-from {init_from}")
         _check_can_start(scene, model, model_config, cfg, initial, spawn=world <= 1)
         out.set_aside()  # deleted at the new run's first checkpoint, restored if it fails before
         record = make_record(scene, scene_options, model, model_config, cfg)
@@ -937,6 +940,7 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     init_from = run.record().get("init_from") if state is None and writer else None
     if init_from:  # a fresh run from a model file's surfels (also when resumed before its first checkpoint)
         net = initial_model(init_from, model, dataclasses.asdict(model_config))
+        check_fits_scene(net, scene, f"--init-from {init_from}")
         net.antialias = cfg.antialias
         trainer = Trainer(scene, net, cfg, backend, device, comm=comm)
     elif state is None:  # a fresh run: its errors are its own, not a checkpoint's
@@ -1319,6 +1323,7 @@ def _file_and_scene(path, data, backend: str, scene_options: dict | None):
                             f"with --data DATA (in Python, {how} reads it)")
     model, _ = load_source(path)
     scene = load_scene(data, **(scene_options or {}))
+    check_fits_scene(model, scene, str(path))
     return model.to(select_backend(backend).torch_device()), scene
 
 

@@ -37,16 +37,20 @@ from typer.testing import CliRunner
 from splatzoo.errors import SplatzooError
 
 DEFAULT_CASES = 50
+# targets whose every case starts a program (splat-transform) or a run get fewer cases in CI; --fuzz-cases N gives
+# every target N
+FEWER_CASES = {"splat-formats": 12, "init-from": 20, "refused-train": 15}
 CASE_SECONDS = 10.0
 
 TARGETS = ("ply-binary", "ply-ascii", "model-pt", "checkpoint", "run-config", "colmap-bin", "colmap-txt",
-           "blender-json", "images", "points-ply", "cli")
+           "blender-json", "images", "points-ply", "cli", "ply-variants", "splat-formats", "distortion",
+           "init-from", "option-strings", "refused-train", "bench")
 
 
 def pytest_generate_tests(metafunc):
     if "fuzz_case" in metafunc.fixturenames:
-        n = metafunc.config.getoption("fuzz_cases") or DEFAULT_CASES
-        ids = [f"{target}-{i}" for target in TARGETS for i in range(n)]
+        given = metafunc.config.getoption("fuzz_cases")
+        ids = [f"{target}-{i}" for target in TARGETS for i in range(given or FEWER_CASES.get(target, DEFAULT_CASES))]
         metafunc.parametrize("fuzz_case", ids, ids=ids)
 
 
@@ -673,31 +677,382 @@ def fuzz_cli(case, rng, seeds, tmp, monkeypatch):
                     + "".join(traceback.format_exception(*result.exc_info)), pytrace=False)
 
 
+# --- the newer doors: third-party PLYs, splat formats, lens distortion, --init-from, option strings ---------------
+
+def gaussian_ply(path: Path, n: int = 8, *, layout: str = "3dgs", dtype: str = "<f4", rest: int = 0,
+                 normals: bool = True, seed: int = 0) -> Path:
+    """A splat PLY as other tools write it: 3DGS (scale_0..2) or 2DGS (scale_0..1) columns, SH rest coefficients or
+    not, normals or not, float or double, little- or big-endian."""
+    g = np.random.default_rng(seed)
+    names = (["x", "y", "z"] + (["nx", "ny", "nz"] if normals else []) + [f"f_dc_{i}" for i in range(3)]
+             + [f"f_rest_{i}" for i in range(rest)] + ["opacity"]
+             + [f"scale_{i}" for i in range(3 if layout == "3dgs" else 2)] + [f"rot_{i}" for i in range(4)])
+    arr = np.zeros(n, dtype=[(k, dtype) for k in names])
+    for k in "xyz":
+        arr[k] = g.uniform(-0.5, 0.5, n)
+    for k in names:
+        if k.startswith("f_dc"):
+            arr[k] = g.normal(0, 0.5, n)
+        elif k.startswith("f_rest"):
+            arr[k] = g.normal(0, 0.05, n)
+        elif k.startswith("scale"):
+            arr[k] = g.uniform(-4, -2, n)
+    arr["opacity"] = g.normal(1, 0.5, n)
+    q = g.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    for i in range(4):
+        arr[f"rot_{i}"] = q[:, i]
+    order = "binary_little_endian" if dtype[0] == "<" else "binary_big_endian"
+    kind = {"f4": "float", "f8": "double"}[dtype[1:]]
+    header = (f"ply\nformat {order} 1.0\nelement vertex {n}\n" + "".join(f"property {kind} {k}\n" for k in names)
+              + "end_header\n")
+    path.write_bytes(header.encode() + arr.tobytes())
+    return path
+
+
+PLY_VARIANTS = {"3dgs-sh0": {}, "3dgs-sh3": {"rest": 45}, "2dgs": {"layout": "2dgs"},
+                "no-normals": {"normals": False}, "double": {"dtype": "<f8"}, "big-endian": {"dtype": ">f4"}}
+
+
+@pytest.fixture(scope="module")
+def ply_variants(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("ply-variants")
+    return {name: gaussian_ply(root / f"{name}.ply", **kw) for name, kw in PLY_VARIANTS.items()}
+
+
+def fuzz_ply_variants(case, rng, seeds, tmp, variants):
+    from splatzoo.export import load_source
+
+    name = rng.choice(sorted(variants))
+    path = tmp / "splats.ply"
+    data, what = mutate_ply(rng, variants[name].read_bytes())
+    path.write_bytes(data)
+    outcome(case, f"{name}: {what}", lambda: load_source(path)[0], valid_model)
+
+
+SPLAT_SUFFIXES = (".spz", ".splat", ".ksplat", ".sog")
+
+
+@pytest.fixture(scope="module")
+def splat_files(seeds) -> dict[str, Path]:
+    """The 2dgs seed converted by splat-transform to each format it reads (skipped where it is not installed)."""
+    from splatzoo.splat_tools import convert_file, find_splat_transform
+
+    try:
+        find_splat_transform()
+    except SplatzooError as e:
+        pytest.skip(f"splat-transform is not installed: {e}")
+    files = {suffix: convert_file(seeds.root / "2dgs.ply", seeds.root / f"2dgs{suffix}")
+             for suffix in SPLAT_SUFFIXES if suffix != ".ksplat"}  # splat-transform reads .ksplat, never writes it
+    from test_hostile_models import _ksplat
+
+    files[".ksplat"] = seeds.root / "splats.ksplat"
+    files[".ksplat"].write_bytes(_ksplat(6))
+    return files
+
+
+def _mutate_spz(rng: random.Random, data: bytes) -> tuple[bytes, str]:
+    """SPZ: a header (magic, version, count, SH degree, fractional bits, flags) and columns, gzip-compressed (up to
+    version 3) or not (version 4, its columns compressed one by one): the header's fields inside the stream, or the
+    bytes of the stream or the file."""
+    import gzip
+
+    zipped = data[:2] == b"\x1f\x8b"
+    if rng.random() < 0.3:
+        return mutate_bytes(rng, data, hot=32)
+    raw = bytearray(gzip.decompress(data) if zipped else data)
+    if rng.random() < 0.6:
+        field, offset, fmt = rng.choice([("version", 4, "<I"), ("count", 8, "<I"), ("SH degree", 12, "B"),
+                                         ("fractional bits", 13, "B"), ("flags", 14, "B")])
+        value = rng.choice([0, 1, 2, 3, 4, 5, 7, 12, 24, 31, 32, 255] + ([2**31, 2**32 - 1] if fmt == "<I" else []))
+        struct.pack_into(fmt, raw, offset, value)
+        what = f"spz {field} = {value}"
+    else:
+        body, what = mutate_bytes(rng, bytes(raw), hot=32)
+        raw = bytearray(body)
+        what = f"inside the gzip stream: {what}" if zipped else what
+    return (gzip.compress(bytes(raw)) if zipped else bytes(raw)), what
+
+
+def _mutate_sog(rng: random.Random, data: bytes) -> tuple[bytes, str]:
+    """SOG: a zip of meta.json and WebP images; meta.json's tree, one image's bytes, or the zip's bytes."""
+    import io
+    import zipfile
+
+    if rng.random() < 0.25:
+        return mutate_bytes(rng, data, hot=64)
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    victim = "meta.json" if "meta.json" in members and rng.random() < 0.6 else rng.choice(sorted(members))
+    if victim.endswith(".json"):
+        doc, what = mutate_tree(rng, json.loads(members[victim]))
+        members[victim] = dump_json(doc).encode()
+    else:
+        members[victim], what = mutate_bytes(rng, members[victim], hot=64)
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as z:
+        for n, b in members.items():
+            z.writestr(n, b)
+    return out.getvalue(), f"{victim}: {what}"
+
+
+def _distinct_positions(model) -> None:
+    """A file of distinct splats read back as one point (a scale or offset gone wrong) is a silent wrong result."""
+    valid_model(model)
+    means = model.per_primitive().get("means")
+    if means is not None and means.shape[0] > 1:
+        assert torch.unique(means, dim=0).shape[0] > 1, "every splat was read at one point"
+
+
+def fuzz_splat_formats(case, rng, seeds, tmp, files):
+    from splatzoo.export import load_source
+
+    suffix = rng.choice(SPLAT_SUFFIXES)
+    data = files[suffix].read_bytes()
+    if suffix == ".spz":
+        data, what = _mutate_spz(rng, data)
+    elif suffix == ".sog":
+        data, what = _mutate_sog(rng, data)
+    elif rng.random() < 0.5:  # .splat / .ksplat: a float somewhere made NaN, huge or tiny
+        i = rng.randrange(max(1, len(data) // 4)) * 4
+        value = rng.choice([float("nan"), float("inf"), 3e38, -3e38, 1e-45, 0.0])
+        data, what = data[:i] + struct.pack("<f", value) + data[i + 4:], f"float at offset {i} = {value}"
+    else:
+        data, what = mutate_bytes(rng, data, hot=64)
+    path = tmp / f"splats{suffix}"
+    path.write_bytes(data)
+    outcome(case, f"{suffix}: {what}", lambda: load_source(path)[0], _distinct_positions)
+
+
+DISTORTION = [0.0, 1e-3, -0.05, 0.2, -0.6, 1.5, 1e3, -1e3, 1e6, -1e6, 1e308, float("nan"), float("inf"), "x", None,
+              [], True]
+CAMERA_MODELS = ["OPENCV", "OPENCV", "OPENCV_FISHEYE", "PINHOLE", "SIMPLE_RADIAL", "FISHEYE", "EQUIRECTANGULAR",
+                 "x", 7]
+
+
+def fuzz_distortion(case, rng, seeds, tmp):
+    """transforms.json's lens: its camera model, fisheye flag and distortion coefficients, for all frames or one."""
+    root = _copy(seeds.nerfstudio, tmp / "d")
+    doc = json.loads((root / "transforms.json").read_text())
+    width, height = doc["w"], doc["h"]
+    changes = []
+    if rng.random() < 0.5:
+        doc["camera_model"] = rng.choice(CAMERA_MODELS)
+        changes.append(f"camera_model={doc['camera_model']!r}")
+    if rng.random() < 0.2:
+        doc["is_fisheye"] = rng.choice([True, False, "x", 1])
+        changes.append(f"is_fisheye={doc['is_fisheye']!r}")
+    for key in rng.sample(["k1", "k2", "k3", "k4", "p1", "p2"], rng.randint(1, 3)):
+        where = doc if rng.random() < 0.7 else rng.choice(doc["frames"])
+        where[key] = rng.choice(DISTORTION)
+        changes.append(f"{'' if where is doc else 'a frame: '}{key}={where[key]!r}")
+    (root / "transforms.json").write_text(json.dumps(doc, allow_nan=True))
+
+    def valid(scene):
+        valid_scene(scene)
+        for v in scene.views:  # undistortion crops; a crop to a sliver of the photo is not a scene to train on
+            assert v.camera.width >= width / 4 and v.camera.height >= height / 4, \
+                f"{v.name} undistorted to {v.camera.width}x{v.camera.height} of a {width}x{height} photo"
+    outcome(case, "; ".join(changes), load_and_decode(root), valid)
+
+
+def fuzz_init_from(case, rng, seeds, tmp, variants):
+    """`train --init-from FILE` with a damaged model file: refused before a run folder is made, or a run that
+    trains to a finite model."""
+    from splatzoo.runs import train
+    from splatzoo.training import TrainConfig
+
+    source = rng.choice([seeds.ply_binary, seeds.ply_ascii, *seeds.model_pt, *variants.values()])
+    path = tmp / f"init{source.suffix}"
+    if source.suffix == ".ply":
+        data, what = mutate_ply(rng, source.read_bytes())
+        path.write_bytes(data)
+    else:
+        ckpt, what = mutate_tree(rng, torch.load(source, weights_only=True), tensors=True)
+        torch.save(ckpt, path)
+    out = tmp / "run"
+    cfg = TrainConfig(iterations=2, backend="reference", seed=1, log_every=1)
+    result = outcome(case, f"{source.name}: {what}",
+                     lambda: train(seeds.data, None, None, cfg, out, init_from=path, progress=False,
+                                   evaluate_at_end=False),
+                     lambda r: valid_model(r.model))
+    if result is None:
+        assert not out.exists(), f"{case} ({source.name}: {what}): a refused --init-from left {out}"
+
+
+def _option_value(rng: random.Random) -> str:
+    return rng.choice(NUMBERS[:-3] + ["true", "false", "yes", "3dgs", "exact", "median", "x,y", "=", ":", "1=2"])
+
+
+def fuzz_option_strings(case, rng, seeds, tmp):
+    """'model:key=value,...' and 'format:key=value,...' as a user types them: names, keys and values of every
+    member and exporter, repeated or misspelt keys, missing '=' and stray separators."""
+    from splatzoo.export import list_formats, parse_format
+    from splatzoo.options import model_spec
+    from splatzoo.zoo import get_model_spec, list_models, make_config
+
+    models = rng.random() < 0.5
+    name = rng.choice((list_models() if models else list_formats()) + ["x", ""])
+    try:
+        cls = get_model_spec(name).config_cls if models else parse_format(name)[1].__class__
+        keys = [f.name for f in dataclasses.fields(cls)]
+    except (SplatzooError, TypeError):
+        keys = []
+    keys += ["x", "", " ", "n-waves", "--seed"]
+    items = [f"{rng.choice(keys)}={_option_value(rng)}" for _ in range(rng.randint(0, 4))]
+    if items and rng.random() < 0.2:
+        items.append(items[0].split("=")[0] + "=" + _option_value(rng))  # a key given twice
+    if rng.random() < 0.1:
+        items.append(rng.choice(keys))  # no '='
+    text = name + rng.choice([":", ":", "::", ": "]) + rng.choice([",", ",", ", ", ",,"]).join(items)
+
+    def valid(options) -> None:
+        if dataclasses.is_dataclass(options):
+            for field in dataclasses.fields(options):
+                value = getattr(options, field.name)
+                if isinstance(value, float):
+                    assert math.isfinite(value), f"{field.name} = {value}"
+    if models:
+        outcome(case, text, lambda: make_config(*model_spec(text)[:1], **model_spec(text)[1]), valid)
+    else:
+        outcome(case, text, lambda: parse_format(text)[1], valid)
+
+
+BENCH = {"--json": ["out.json", "", "/proc/x.json", ".", "missing/x.json", "a" * 300 + ".json", "/dev/null"],
+         "--repeats": NUMBERS, "--backends": ["cpu", "reference", "cuda", "bogus", "", ",", "cpu,cpu", "a" * 3000],
+         "--waves": ["0", "4", "4a", "0t4", "0b", "x", "-1", "1000000000", "0,0", "", "0t0", "0t1000", "4ab", ","],
+         "--quick": None, "--gpu": None, "--fps": ["absent", "model.pt", "run", "/dev/zero", "."],
+         "--backend": BACKENDS, "--training": None, "--data": ["absent", "data", "model.pt"],
+         "--size": ["16x16", "100000x100000", "0x0", "x", "8x", "1e3x8", "-8x8", "8x8x8", ""],
+         "--views": NUMBERS, "--iterations": NUMBERS, "--models": ["2dgs", "gabor", "x", "", "2dgs,2dgs",
+                                                                    "gabor:n_waves=2", ","],
+         "--gsplat-examples": ["absent", "."]}
+
+
+def fuzz_bench(case, rng, seeds, tmp, monkeypatch):
+    """`splatzoo bench` with its options mutated: everything asked for is checked before anything runs (the
+    benchmarks themselves are replaced by recorders here), so a case is a named refusal or a checked request."""
+    import splatzoo.cli as cli
+    import splatzoo.evaluate as evaluate
+
+    calls = []
+    real = cli._bench_module
+
+    def recorded(name):
+        module = real(name)
+        module.run_benchmark = lambda **kw: calls.append(kw)
+        module.run = lambda argv, **kw: calls.append({"argv": argv})
+        return module
+    monkeypatch.setattr(cli, "_bench_module", recorded)
+    monkeypatch.setattr(evaluate, "fps_report", lambda *a, **k: calls.append({"fps": True}) or [])
+    monkeypatch.chdir(tmp)
+    shutil.copy(seeds.model_pt[0], tmp / "model.pt")
+    _copy(seeds.finished, tmp / "run")
+    _copy(seeds.data, tmp / "data")
+    args = ["bench", "--json", "out.json"]
+    for option in rng.sample(sorted(BENCH), k=rng.choice([1, 2, 2, 3])):
+        values = BENCH[option]
+        args += [option] if values is None else [option, rng.choice(values)]
+    what = " ".join(a if len(a) < 60 else a[:20] + "..." for a in args)
+    result = outcome(case, what, lambda: CliRunner().invoke(cli.app, args))
+    if result.exception is not None and not isinstance(result.exception, (SystemExit, SplatzooError)):
+        pytest.fail(f"{case} ({what}): {type(result.exception).__name__}, not a SplatzooError\n"
+                    + "".join(traceback.format_exception(*result.exc_info)), pytrace=False)
+    assert "Traceback" not in result.output, f"{case} ({what}):\n{result.output}"
+    if result.exit_code == 0:
+        assert calls, f"{case} ({what}): exit 0 but no benchmark ran"
+        for call in calls:
+            if "repeats" in call:
+                assert 1 <= call["repeats"] <= 1000 and call["waves"], f"{case} ({what}): {call}"
+                assert call["backends"] is None or call["backends"], f"{case} ({what}): {call}"  # None: all here
+
+
+def folder_digest(folder: Path) -> dict[str, str]:
+    """Every file under `folder` by relative path -> its bytes' hash (what a refused command must leave alone)."""
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+REFUSED_TRAIN = {"--model": MODELS, "--num-primitives": NUMBERS, "--max-primitives": NUMBERS, "--backend": BACKENDS,
+                 "--nproc": ["-1", "0", "nan", "abc", "1e308", "99999999999999999999999", ""],  # 2 would train "--resolution": NUMBERS, "--test-every": NUMBERS, "--background": BACKGROUNDS,
+                 "--n-waves": NUMBERS, "--store": ["4bit", "float16", "8bit", "x", ""], "--max-bytes": NUMBERS,
+                 "--init-from": ["absent.ply", "model.pt"], "--strategy": ["mcmc", "x"], "--resume": None}
+
+
+def fuzz_refused_train(case, rng, seeds, tmp, monkeypatch):
+    """`train --overwrite` into a finished run with options mutated: a refused command leaves every file of the run
+    byte-identical; one that is not refused trains a new run there (two iterations)."""
+    from splatzoo.cli import app
+
+    monkeypatch.chdir(tmp)
+    shutil.copy(seeds.model_pt[0], tmp / "model.pt")
+    run = _copy(seeds.finished, tmp / "run")
+    before = folder_digest(run)
+    chosen = rng.sample(sorted(REFUSED_TRAIN), k=rng.choice([1, 1, 2]))
+    args = ["train", str(rng.choice([seeds.data, seeds.data, tmp / "absent"])), "--out", str(run), "--iterations",
+            "2", "--overwrite"]
+    for option in chosen:
+        values = REFUSED_TRAIN[option]
+        args += [option] if values is None else [option, rng.choice(values)]
+    what = " ".join(a if len(a) < 60 else a[:20] + "..." for a in args)
+    result = outcome(case, what, lambda: CliRunner().invoke(app, args))
+    if result.exception is not None and not isinstance(result.exception, (SystemExit, SplatzooError)):
+        pytest.fail(f"{case} ({what}): {type(result.exception).__name__}, not a SplatzooError\n"
+                    + "".join(traceback.format_exception(*result.exc_info)), pytrace=False)
+    assert "Traceback" not in result.output, f"{case} ({what}):\n{result.output}"
+    if result.exit_code != 0:
+        assert folder_digest(run) == before, f"{case} ({what}): refused, but the run folder changed"
+
+
 FUZZ = {"ply-binary": fuzz_ply_binary, "ply-ascii": fuzz_ply_ascii, "model-pt": fuzz_model_pt,
         "checkpoint": fuzz_checkpoint, "run-config": fuzz_run_config, "colmap-bin": fuzz_colmap_bin,
         "colmap-txt": fuzz_colmap_txt, "blender-json": fuzz_blender_json, "images": fuzz_images,
-        "points-ply": fuzz_points_ply}
+        "points-ply": fuzz_points_ply, "ply-variants": fuzz_ply_variants, "distortion": fuzz_distortion,
+        "init-from": fuzz_init_from, "option-strings": fuzz_option_strings}
 
 
-def test_fuzz(fuzz_case, seeds, tmp_path, monkeypatch):
+def test_fuzz(fuzz_case, seeds, tmp_path, monkeypatch, request):
     target = fuzz_case.rsplit("-", 1)[0]
     rng = random.Random(fuzz_case)
     if target == "cli":
         fuzz_cli(fuzz_case, rng, seeds, tmp_path, monkeypatch)
+    elif target == "refused-train":
+        fuzz_refused_train(fuzz_case, rng, seeds, tmp_path, monkeypatch)
+    elif target == "bench":
+        fuzz_bench(fuzz_case, rng, seeds, tmp_path, monkeypatch)
+    elif target in ("ply-variants", "init-from"):
+        FUZZ[target](fuzz_case, rng, seeds, tmp_path, request.getfixturevalue("ply_variants"))
+    elif target == "splat-formats":
+        fuzz_splat_formats(fuzz_case, rng, seeds, tmp_path, request.getfixturevalue("splat_files"))
     else:
         FUZZ[target](fuzz_case, rng, seeds, tmp_path)
 
 
-def test_the_seeds_themselves_load(seeds, tmp_path):
+def test_the_seeds_themselves_load(seeds, tmp_path, request):
     """Every seed is valid: a case that refuses it is a mutation at work, not a broken seed."""
-    from splatzoo.export import load_ply
-    from splatzoo.runs import Run
+    from splatzoo.export import load_ply, load_source
+    from splatzoo.runs import Run, train
+    from splatzoo.training import TrainConfig
     from splatzoo.zoo import load_model
 
     for path in seeds.model_pt:
         valid_model(load_model(path))
     valid_model(load_ply(seeds.ply_binary))
     valid_model(load_ply(seeds.ply_ascii))
+    for path in request.getfixturevalue("ply_variants").values():
+        valid_model(load_source(path)[0])
+    try:
+        splats = request.getfixturevalue("splat_files")
+    except pytest.skip.Exception:
+        splats = {}
+    for path in splats.values():
+        _distinct_positions(load_source(path)[0])
+    for path in (seeds.ply_binary, seeds.model_pt[0]):
+        trained = train(seeds.data, None, None, TrainConfig(iterations=2, backend="reference"), tmp_path / path.name,
+                        init_from=path, progress=False, evaluate_at_end=False)
+        valid_model(trained.model)
     for root in (seeds.data, seeds.colmap_bin, seeds.colmap_txt, seeds.blender, seeds.nerfstudio):
         valid_scene(load_and_decode(root)())
     model, scene, _ = Run(seeds.finished).load()

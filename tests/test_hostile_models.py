@@ -215,6 +215,29 @@ def test_check_fits_scene_refuses_more_surfels_than_training_pixels():
         check_fits_scene(_model(n=40), scene, "--init-from m.ply")
 
 
+def test_commands_check_a_model_file_against_the_dataset(tmp_path):
+    """eval/render FILE --data and train --init-from refuse, before anything runs, a model none of whose surfels the
+    dataset's cameras see and one with more surfels than the dataset has pixels; no run folder is left."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    data = make_synthetic_scene("plain", tmp_path / "data", views=3, width=8, height=8)  # 192 training pixels
+    far = _model()
+    with torch.no_grad():
+        far.means.add_(torch.tensor([1e11, 0.0, 0.0]))
+    save_ply(far, tmp_path / "far.ply")
+    save_ply(_model(n=400, spread=0.2), tmp_path / "many.ply")
+    for name, says in (("far.ply", "none of its 40 surfels lies in front"), ("many.ply", "its 400 surfels are more")):
+        path = tmp_path / name
+        for args in (["eval", str(path), "--data", str(data), "--backend", "reference"],
+                     ["render", str(path), "--data", str(data), "--backend", "reference", "--out",
+                      str(tmp_path / "renders")],
+                     ["train", str(data), "--init-from", str(path), "--iterations", "2", "--backend", "reference",
+                      "--out", str(tmp_path / "run")]):
+            res = runner.invoke(app, args)
+            assert isinstance(res.exception, SplatzooError) and says in str(res.exception), (args, res.output)
+        assert not (tmp_path / "run").exists() and not (tmp_path / "renders").exists()
+
+
 def test_ply_for_3dgs_viewers_refuses_a_model_no_camera_sees():
     cam = Camera.look_at([0, 0, -3], [0, 0, 0], width=32, height=32)
     model = _model()
