@@ -256,6 +256,10 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
         raise fail(f"its config {_brief(config)} is not valid for model {name!r} ({_brief(e)})") from None
 
     params = dict(model.named_parameters())
+    # the zoo's models compute in float32: another floating type (a file saved in half or double precision, or
+    # edited) is read as float32 values, and a double beyond float32's range becomes infinite, refused below
+    state = {k: v.float() if isinstance(v, torch.Tensor) and v.is_floating_point() and v.dtype != torch.float32
+             and v.layout == torch.strided and v.device.type == "cpu" else v for k, v in state.items()}
     for k, v in state.items():
         if not isinstance(k, str) or not isinstance(v, torch.Tensor) or v.layout != torch.strided:
             raise fail(f"state entry {k!r} is a {type(v).__name__}, not a dense tensor")
@@ -296,11 +300,31 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     empty = drawing_problem(model)
     if empty:
         raise fail(empty)
+    _check_drawable(model, fail)
     model.name = name
     model.antialias = antialias
     model.background = background
     model.precision = precision
     return model
+
+
+def _check_drawable(model: SplatModel, fail) -> None:
+    """The surfels the model hands the rasterizer, for one camera looking at it, lie in the field table's ranges
+    (values no loader check names, e.g. a quaternion of 3e38, would otherwise be refused at the first render)."""
+    from .errors import ShapeError
+    from .types import Camera
+
+    means = model.per_primitive().get("means")
+    if means is None or means.shape[0] == 0:
+        return
+    centre = means.detach().double().mean(0)
+    camera = Camera.look_at(centre + torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64), centre, width=8, height=8,
+                            dtype=torch.float32)
+    try:
+        with torch.no_grad():
+            model.surfels(camera).validate()
+    except ShapeError as e:
+        raise fail(f"its surfels cannot be drawn: {e}") from None
 
 
 def model_from_checkpoint(ckpt: dict) -> SplatModel:
