@@ -338,3 +338,31 @@ def test_export_never_overwrites_the_model(tmp_path):
         export_run(odd, odd)
     assert odd.read_bytes() == before
     assert export_run(run / "model.pt", tmp_path / "model.PLY").is_file()
+
+
+def test_model_files_in_other_float_types_or_out_of_range_surfels(tmp_path):
+    """A half or bfloat16 entry is read as float32 (and the model saves packed); a double beyond float32's range and
+    a quaternion the rasterizer refuses are named at load, not at the first render."""
+    import torch
+
+    from splatzoo.errors import SplatzooError
+    from splatzoo.zoo import create_model, load_model, save_model
+
+    model = create_model("2dgs", torch.randn(5, 3), torch.rand(5, 3), sh_degree=1)
+    save_model(model, tmp_path / "m.pt")
+    ckpt = torch.load(tmp_path / "m.pt", weights_only=True)
+    for dtype in (torch.bfloat16, torch.float16, torch.float64):
+        edited = {**ckpt, "state": {**ckpt["state"], "sh_dc": ckpt["state"]["sh_dc"].to(dtype)}}
+        torch.save(edited, tmp_path / "e.pt")
+        loaded = load_model(tmp_path / "e.pt")
+        assert all(t.dtype == torch.float32 for t in loaded.state_dict().values() if t.is_floating_point())
+        save_model(loaded, tmp_path / "e.szp")
+    huge = {**ckpt, "state": {**ckpt["state"], "means": ckpt["state"]["means"].double() * 1e300}}
+    torch.save(huge, tmp_path / "huge.pt")
+    with pytest.raises(SplatzooError, match="non-finite"):
+        load_model(tmp_path / "huge.pt")
+    quats = ckpt["state"]["quats"].clone()
+    quats[0, 1] = 3e38
+    torch.save({**ckpt, "state": {**ckpt["state"], "quats": quats}}, tmp_path / "q.pt")
+    with pytest.raises(SplatzooError, match="quats"):
+        load_model(tmp_path / "q.pt")
