@@ -638,6 +638,10 @@ def fuzz_cli(case, rng, seeds, tmp, monkeypatch):
     from splatzoo.cli import app
 
     monkeypatch.chdir(tmp)  # a default output folder (runs/...) lands here
+    import splatzoo.viewer
+
+    # a viewer that starts (a valid model, a free port) serves until stopped: here it stops at once
+    monkeypatch.setattr(splatzoo.viewer.Viewer, "serve_forever", lambda self: self.stop())
     command = rng.choice(sorted(CLI))
     options = CLI[command]
     chosen = rng.sample(sorted(options), k=min(len(options), rng.choice([1, 1, 2])))
@@ -668,11 +672,14 @@ def fuzz_cli(case, rng, seeds, tmp, monkeypatch):
         args += [option] if values is None else [option, rng.choice(values)]
     what = " ".join(a if len(a) < 60 else a[:20] + "..." for a in args)
     runner = CliRunner()
+    before = folder_digest(target) if real_run else None
 
     def run():
         return runner.invoke(app, args)
 
     result = outcome(case, what, run)
+    if real_run and result.exit_code != 0:
+        assert folder_digest(target) == before, f"{case} ({what}): refused, but the run folder changed"
     if result.exception is None or isinstance(result.exception, SystemExit):
         assert result.exit_code in (0, 2), f"{case} ({what}): exit code {result.exit_code}\n{result.output}"
         assert "Traceback" not in result.output, f"{case} ({what}):\n{result.output}"
