@@ -120,6 +120,17 @@ def _training_views(scene) -> list:
     return list(scene.train) or list(getattr(scene, "test", []))
 
 
+PIXELS_PER_SURFEL = 128       # densification's default budget: one surfel per this many training pixels
+
+
+def densify_budget(scene, initial: int) -> int:
+    """The primitive count densification may reach when --max-primitives is not given: one surfel per
+    PIXELS_PER_SURFEL training pixels (3DGS's converged scenes hold about one Gaussian per 100), and at least
+    twice the initial count."""
+    pixels = sum(v.camera.width * v.camera.height for v in scene.train)
+    return max(pixels // PIXELS_PER_SURFEL, 2 * initial)
+
+
 def surfel_limit(scene) -> int:
     """The most surfels a model fitted, scored or rendered on `scene` may hold: SURFELS_PER_PIXEL per pixel of its
     training views."""
@@ -130,8 +141,6 @@ def check_surfel_count(model, scene, what: str) -> None:
     """Refuse a model with more surfels than the scene's training views have pixels (`surfel_limit`), naming the
     count and the bound: such a model cannot be fitted to those images, and drawing it costs far more than they are
     worth (an evaluation of ten million surfels on a 64x64 dataset seems to hang)."""
-    from .training.trainer import PIXELS_PER_SURFEL, densify_budget
-
     views = _training_views(scene)
     n, limit = model.num_primitives, surfel_limit(scene)
     if n > limit:

@@ -156,7 +156,8 @@ def test_densification_is_sane_at_any_run_length(tiny_data):
     """A short run keeps the 30k schedule's statistics window and reset spacing; growth is capped per step and in
     all (one surfel per 128 training pixels by default)."""
     from splatzoo.training.densify import DensifyStats, densify_and_prune
-    from splatzoo.training.trainer import Trainer, densify_budget
+    from splatzoo.model_checks import densify_budget
+    from splatzoo.training.trainer import Trainer
     from splatzoo.zoo import make_config
 
     scene = load_scene(tiny_data)

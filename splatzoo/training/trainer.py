@@ -15,6 +15,7 @@ from typing import ClassVar, NamedTuple
 import torch
 
 from ..errors import SplatzooError
+from ..model_checks import densify_budget
 from ..evaluate import area_resize
 from ..packing import PRECISIONS
 from ..types import Camera, RenderOutput
@@ -25,7 +26,6 @@ from .distributed import Comm
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
 
 REFERENCE_ITERATIONS = 30000  # the schedule below is stated for this many iterations and scaled to the run
-PIXELS_PER_SURFEL = 128       # default densification budget: one surfel per this many training pixels
 MAX_GROWTH = 0.5              # one densification step adds at most this fraction of the current count
 STRATEGIES = ("adc", "mcmc", "frequency")  # densification strategies (TrainConfig.strategy; "auto": the model's)
 ERROR_AVERAGE = 0.01          # the model's recent_error: an exponential average over about 1/this many steps
@@ -83,14 +83,6 @@ def check_start(scene, model: str, model_config, cfg, device: torch.device, init
     initial = initial if initial is not None else cfg.num_primitives or scene.points.shape[0]
     budget = (cfg.max_primitives or densify_budget(scene, initial)) if cfg.densify else initial
     check_memory(model, model_config, initial, budget, device)
-
-
-def densify_budget(scene, initial: int) -> int:
-    """The primitive count densification may reach when --max-primitives is not given: one surfel per
-    PIXELS_PER_SURFEL training pixels (3DGS's converged scenes hold about one Gaussian per 100), and at least
-    twice the initial count."""
-    pixels = sum(v.camera.width * v.camera.height for v in scene.train)
-    return max(pixels // PIXELS_PER_SURFEL, 2 * initial)
 
 
 @dataclass
