@@ -160,3 +160,67 @@ def undistorted_size(cam) -> tuple[int, int] | None:
     except Exception:  # a camera pycolmap rejects: no canvas to compare with
         return None
     return int(und.width), int(und.height)
+
+
+# --- how much of a photo its undistorted copy keeps -------------------------------------------------------------
+
+# pycolmap's undistorter keeps the focal length and crops the pinhole image to the region every pixel of which sees
+# the photo. For a real lens that region is about the photo itself (the published fox calibration keeps 98.8% of each
+# side; a fisheye's is larger): it shrinks only as far as the lens magnifies the photo's rim against its centre, and
+# k1 = 0.3 on a 56-degree lens (corners pushed out 17%, beyond any photographic lens) still keeps 86%. Below
+# WARN_REGION the coefficients are very likely wrong (a warning); below MIN_REGION (the rim magnified over 2x; k1 = 1e6
+# or p1 = p2 = 1e3 keep one pixel) nothing real is left to train on and loading stops. Below 0.2 pycolmap would stop
+# cropping and pad the image with black instead, which training would learn as scene.
+WARN_REGION = 0.8
+MIN_REGION = 0.5
+
+
+def undistorted_region(cam) -> tuple[int, int]:
+    """(width, height) of the pinhole image (same focal length) every pixel of which sees the photo: the size pycolmap's
+    undistorter crops to, without its floor of 0.2x the photo's size."""
+    pycolmap = import_pycolmap()
+    options = pycolmap.UndistortCameraOptions()
+    options.min_scale = 1e-9
+    und = pycolmap.undistort_camera(options, for_undistortion(cam) or cam)
+    return int(und.width), int(und.height)
+
+
+def lens_terms(cam) -> str:
+    """The camera's model and distortion terms by name, e.g. 'OPENCV: k1 1e+06, k2 0, p1 0, p2 0'."""
+    names = [n.strip() for n in cam.params_info.split(",")]
+    params = list(cam.params)
+    terms = [f"{names[i]} {params[i]:.4g}" for i in cam.extra_params_idxs() if i < len(names)]
+    return f"{model_name(cam)}: {', '.join(terms) or 'no distortion terms'}"
+
+
+def check_finite(cam, who: str, fix: str) -> None:
+    """A DataError naming `who` when one of the camera's parameters is NaN or infinite."""
+    params = np.asarray(cam.params, dtype=np.float64)
+    if not np.isfinite(params).all():
+        names = [n.strip() for n in cam.params_info.split(",")]
+        bad = [f"{names[i] if i < len(names) else i} {p:g}" for i, p in enumerate(params) if not np.isfinite(p)]
+        raise DataError(f"{who}: its camera ({model_name(cam)}) has {', '.join(bad)}: parameters must be finite "
+                        f"numbers; {fix}")
+
+
+def check_lens(cam, who: str, fix: str) -> str | None:
+    """Whether `cam`'s photos can be undistorted into something to train on. Raises DataError (naming `who`, then
+    `fix`) when a parameter is NaN or infinite, or when the region the undistorted image keeps (undistorted_region) is
+    under MIN_REGION of the photo's width or height; returns a warning under WARN_REGION, else None."""
+    check_finite(cam, who, fix)
+    try:
+        w, h = undistorted_region(cam)
+    except Exception as e:  # pycolmap rejects a camera it cannot invert
+        raise DataError(f"{who}: pycolmap cannot undistort its camera ({lens_terms(cam)}): {e}; {fix}") from None
+    keep = min(w / cam.width, h / cam.height)
+    if keep >= WARN_REGION:
+        return None
+    side = "width" if w / cam.width <= h / cam.height else "height"
+    said = (f"{who}: its lens ({lens_terms(cam)}) leaves a valid undistorted region of {w}x{h} px of its "
+            f"{cam.width}x{cam.height} photo ({100 * keep:.0f}% of its {side})")
+    if keep < MIN_REGION:
+        raise DataError(f"{said}, too little to train on: no photographic lens magnifies the photo's rim that much, "
+                        f"so the distortion coefficients are wrong (a real lens keeps over {100 * WARN_REGION:.0f}%). "
+                        f"{fix[0].upper()}{fix[1:]}")
+    return (f"{said}; a real lens keeps over {100 * WARN_REGION:.0f}%, so the distortion coefficients are probably "
+            f"wrong. {fix[0].upper()}{fix[1:]}")

@@ -21,8 +21,8 @@ import torch
 
 from ..errors import DataError
 from ..types import Camera
-from .camera_models import (PINHOLE_MODELS, check_undistortable, for_undistortion, import_pycolmap, is_pinhole,
-                            model_name, pinhole_K, projection_profile)
+from .camera_models import (PINHOLE_MODELS, check_finite, check_lens, check_undistortable, for_undistortion,
+                            import_pycolmap, is_pinhole, model_name, pinhole_K, projection_profile)
 from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_has_alpha, image_size, list_images,
                     mesh_path_of, scale_camera, split_views, target_scale)
 from .staging import replace_dir, temp_dir_beside
@@ -241,6 +241,9 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
     if not os.access(root, os.W_OK):
         cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "splatzoo" / UNDISTORTED_DIR
         target = cache / stamp[:16]
+    if target.exists() and not target.is_dir():
+        raise DataError(f"{target} is a file, but splatzoo keeps the undistorted copy of {root} (PINHOLE images and "
+                        "model) in a folder of that name; move or delete that file and load again")
     stamp_file = target / "source.json"
     if stamp_file.is_file():
         try:
@@ -281,6 +284,24 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
     return target
+
+
+def _check_lenses(model, used: list[int], distorted: list[int], registered, sparse: Path) -> None:
+    """Refuse cameras with NaN or infinite parameters (pycolmap takes a NaN distortion term for zero), and refuse (or
+    warn about) cameras whose photos undistort to too little to train on: camera_models.check_lens, the check the
+    transforms.json path makes."""
+    import sys
+
+    fix = ("check its parameters; if SfM fitted them, re-run it with `splatzoo sfm IMAGES --out DATA --camera-model "
+           "SIMPLE_PINHOLE`")
+    for cid in used:
+        names = sorted(im.name for im in registered if im.camera_id == cid)
+        who = (f"camera {cid} of {sparse} (used by {len(names)} image{'s' if len(names) > 1 else ''}, e.g. "
+               f"{names[0]})")
+        check_finite(model.cameras[cid], who, fix)
+        warning = check_lens(model.cameras[cid], who, fix) if cid in distorted else None
+        if warning:
+            print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
 
 
 def _undistortable_model(sparse: Path, spare: Path) -> Path:
@@ -353,6 +374,7 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
     for cid in used:
         check_undistortable(model.cameras[cid], sparse)
     distorted = [cid for cid in used if not is_pinhole(model.cameras[cid])]
+    _check_lenses(model, used, distorted, registered, sparse)
     if distorted:
         # Masks are undistorted along with the images whether or not they are asked for now, so loading with
         # and without masks shares one cached copy.
