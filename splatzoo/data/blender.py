@@ -20,10 +20,12 @@ nerfstudio / instant-ngp additions, all read at the top level or per frame (a fr
   OPENCV_FISHEYE; instant-ngp: is_fisheye) with k1, k2, k3, k4, p1, p2 (or nerfstudio's distortion_params list).
   Distorted photos are undistorted as the COLMAP path does (pycolmap's undistorter: the same PINHOLE camera, the same
   crop) into DATA/undistorted-transforms/ (masks and alpha too), once; later loads reuse the files. A projection
-  that is not perspective (EQUIRECTANGULAR, ...) is refused by name.
+  that is not perspective (EQUIRECTANGULAR, ...) is refused by name, and so is a lens whose undistorted photos would
+  keep under half the photo's width or height (a warning under 80%: camera_models.check_lens, as the COLMAP path).
 - applied_transform / applied_scale: see _points_frame (how the point cloud is put in the frames' frame).
 - frames whose image is missing stop loading with an error that names them and the skip_missing option
-  (--skip-missing); with it they are left out and scene.notes says which.
+  (--skip-missing); with it they are left out and scene.notes says which. So do frames whose mask_path names a mask
+  that does not exist, when masks are read (masks="auto" reads them when any frame names a mask_path).
 - keys splatzoo does not use (aabb_scale, sharpen, depth_file_path, ...) are listed once in scene.notes.
 """
 from __future__ import annotations
@@ -38,8 +40,9 @@ import torch
 from ..errors import DataError
 from ..io import ply_type_name, read_ply_vertices
 from ..types import Camera
-from .scene import (DatasetFormat, Scene, View, camera_extent, check_cameras, find_mask, image_has_alpha, image_size,
-                    mesh_path_of, read_image, read_mask, scale_camera, split_views, target_scale)
+from .scene import (DatasetFormat, MissingMaskError, Scene, View, camera_extent, check_cameras, find_mask,
+                    image_has_alpha, image_size, mesh_path_of, read_image, read_mask, scale_camera, split_views,
+                    target_scale)
 
 RANDOM_POINTS = 10_000
 MIN_TRIANGULATED = 100     # fewer triangulated points than this: random points instead
@@ -106,6 +109,7 @@ def _option(frame: dict, meta: dict, key: str, where: str, i: int, *, positive: 
 
 
 _ANGLE_HINT = " (the field of view in radians, between 0 and pi; 40 degrees is 0.698)"
+_TERM_HINT = " (a lens distortion coefficient; fix it, or remove it for a lens without that term)"
 
 
 def _pose(frame: dict, where: str, i: int) -> np.ndarray:
@@ -188,6 +192,12 @@ def _camera_model(frame: dict, meta: dict, where: Path, i: int) -> str:
         raise DataError(f"{where}: camera_model must be a name such as OPENCV, not {model!r:.60}")
     if model in PERSPECTIVE_MODELS and not fisheye:
         return "PERSPECTIVE"
+    if model in PERSPECTIVE_MODELS:
+        at = {k: "in the frame" if k in frame else "at the top of the file" for k in ("is_fisheye", "camera_model")}
+        raise DataError(f"{where}: frame {i} is marked is_fisheye: true ({at['is_fisheye']}) but its camera_model is "
+                        f"{model} ({at['camera_model']}), a perspective model; the two disagree. For a fisheye lens "
+                        "set camera_model to OPENCV_FISHEYE (distortion k1..k4); otherwise remove is_fisheye or set "
+                        "it to false")
     if model in FISHEYE_MODELS:
         return "FISHEYE"
     known = ", ".join(PERSPECTIVE_MODELS + FISHEYE_MODELS)
@@ -209,7 +219,7 @@ def _distortion(frame: dict, meta: dict, where: Path, i: int) -> dict[str, float
                             f"p2], not {listed!r:.80}")
         terms = dict(zip(DISTORTION_KEYS, map(float, listed)))
     for key in DISTORTION_KEYS:
-        value = _option(frame, meta, key, where, i, hint=" (a lens distortion coefficient)")
+        value = _option(frame, meta, key, where, i, hint=_TERM_HINT)
         if value is not None:
             terms[key] = value
     return {k: terms.get(k, 0.0) for k in DISTORTION_KEYS}
@@ -252,6 +262,35 @@ def _frame_path(frame, i: int, root: Path, meta_path: Path) -> str:
     return file_path
 
 
+def _missing_mask(frame, root: Path, meta_path: Path, i: int) -> str | None:
+    """The mask_path a frame names when no such file exists (also trying .png/.jpg/.jpeg after a bare name), else
+    None."""
+    given = frame.get("mask_path") if isinstance(frame, dict) else None
+    if given is None:
+        return None
+    if not isinstance(given, str) or not given:
+        raise DataError(f"{meta_path}: frame {i} mask_path must be a path relative to {root}, not {given!r:.60}")
+    return given if _image_path(root, given, meta_path) is None else None
+
+
+def names_masks(root) -> bool:
+    """Whether a Blender-style dataset has masks to read when masks are "auto": a masks/ folder, or a transforms file
+    whose frames name a mask_path (nerfstudio's per-frame masks, which may lie anywhere)."""
+    root = Path(root)
+    if (root / "masks").is_dir():
+        return True
+    train = root / "transforms_train.json"
+    files = [train, root / "transforms_test.json"] if train.is_file() else [root / "transforms.json"]
+    for path in files:
+        try:
+            frames = _read_json(path)["frames"] if path.is_file() else []
+        except DataError:
+            return False   # loading names what is wrong with the file
+        if any(isinstance(f, dict) and f.get("mask_path") is not None for f in frames):
+            return True
+    return False
+
+
 def _mask_of(frame: dict, root: Path, name: str, meta_path: Path, i: int) -> Path | None:
     """The frame's mask: nerfstudio's per-frame mask_path, else masks/<name> (see find_mask)."""
     given = frame.get("mask_path")
@@ -272,6 +311,7 @@ class _Loaded:
     def __init__(self, meta_path: Path, meta: dict):
         self.meta_path, self.meta = meta_path, meta
         self.skipped: list[str] = []
+        self.skipped_masks: list[str] = []   # frames left out because the mask they name is missing
         self.ignored = sorted(k for k in meta if k not in USED_KEYS)
         self.ignored_per_frame: dict[str, int] = {}
         self.distorted = 0
@@ -296,8 +336,24 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
                             "the transforms file, or pass --skip-missing (load_scene(..., skip_missing=True)) to "
                             "train without them")
         found.skipped = [str(Path(frames[i]["file_path"])) for i in missing]
+    if masks:
+        # a mask the file names is part of the frame: missing, it stops loading as a missing image does
+        named = {i: _missing_mask(frames[i], root, meta_path, i) for i in range(len(frames)) if paths[i] is not None}
+        lacking = {i: m for i, m in named.items() if m is not None}
+        if lacking:
+            shown = [f"frame {i} ({frames[i]['file_path']}): {root / m}" for i, m in list(lacking.items())[:5]]
+            listing = ", ".join(shown) + (f" and {len(lacking) - 5} more" if len(lacking) > 5 else "")
+            if not skip_missing or len(lacking) == len(frames) - len(missing):
+                raise MissingMaskError(
+                    f"{meta_path}: {len(lacking)} of {len(frames)} frames name a mask (mask_path) that does not exist "
+                    f"(also tried .png/.jpg/.jpeg): {listing}. Restore the masks or fix those frames' mask_path"
+                    + ("" if skip_missing else ", or pass --skip-missing (load_scene(..., skip_missing=True)) to train "
+                                                "without those frames"))
+            found.skipped_masks = [f"{frames[i]['file_path']} (mask {m})" for i, m in lacking.items()]
+            paths = [None if i in lacking else p for i, p in enumerate(paths)]
     views = []
-    lenses = []   # (index in views, COLMAP camera of the photo) for the frames whose photos must be undistorted
+    lenses = []   # (index in views, COLMAP camera of the photo, the frame in words) for the frames whose photos must
+    #               be undistorted
     size = None
     for i, frame in enumerate(frames):
         path = paths[i]
@@ -346,7 +402,7 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
                 raise DataError(f"masks requested but image {path} has no alpha channel and no mask in "
                                 f"{root / 'masks'}; load without masks")
         if lens is not None:
-            lenses.append((len(views), lens, frame))
+            lenses.append((len(views), lens, f"{meta_path}: frame {i} ({name})"))
         cam = Camera(torch.from_numpy(w2c), torch.from_numpy(K), w, h, name)
         views.append(View(camera=cam, name=name, path=path, mask_path=mask_path, use_mask=masks,
                           background=tuple(background)))
@@ -406,7 +462,12 @@ def _write_png(path: Path, px: np.ndarray) -> None:
     ok, data = cv2.imencode(".png", np.ascontiguousarray(px))
     if not ok:
         raise DataError(f"cannot encode the undistorted image {path}")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        blocking = next((p for p in reversed(path.parents) if p.exists() and not p.is_dir()), path.parent)
+        raise DataError(f"cannot write the undistorted image {path}: {blocking} is a file where splatzoo needs a "
+                        "folder; move or delete that file and load again") from None
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".png")
     try:
         with os.fdopen(fd, "wb") as f:
@@ -429,24 +490,33 @@ def _undistort_views(root: Path, views: list[View], lenses: list, masks: bool) -
     undistorter makes from its lens, as the COLMAP path does; copies are made once and kept beside the dataset."""
     import sys
 
-    from .camera_models import for_undistortion, import_pycolmap, projection_profile
+    from .camera_models import check_lens, for_undistortion, import_pycolmap, projection_profile
 
     pycolmap = import_pycolmap()
     options = pycolmap.UndistortCameraOptions()
     target = _undistorted_dir(root)
+    if target.exists() and not target.is_dir():
+        raise DataError(f"{target} is a file, but splatzoo keeps the undistorted copies of {root}'s photos in a folder "
+                        "of that name; move or delete that file and load again")
     jobs = []
     warned = set()
-    for index, lens, frame in lenses:
+    for index, lens, who in lenses:
         view = views[index]
         lens = for_undistortion(lens) or lens   # a fisheye lens with zero terms is still warped (camera_models.py)
         key = (lens.model_name, tuple(lens.params), lens.width, lens.height)
         if key not in warned:
             warned.add(key)
+            warning = check_lens(lens, who, f"check the distortion coefficients ({', '.join(DISTORTION_KEYS)} or "
+                                            "distortion_params): they are unitless, for image coordinates divided by "
+                                            "the focal length (typically |k1| < 0.5 and |p1|, |p2| < 0.01)")
+            if warning:
+                print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
             fold = projection_profile(lens)["fold_px"]
             if fold is not None:
                 print(f"splatzoo: warning: {view.name} ({lens.model_name}: {lens.params_to_string()}) has distortion "
                       f"that folds back {fold:.0f} px from the image centre, inside the photo, so the undistorted "
-                      "images show ghost rings; this calibration is probably wrong", file=sys.stderr, flush=True)
+                      "images show ghost rings; this calibration is probably wrong: check its distortion coefficients",
+                      file=sys.stderr, flush=True)
         try:
             pinhole = pycolmap.undistort_camera(options, lens)
         except Exception as e:  # pycolmap rejects a camera it cannot invert
@@ -521,9 +591,10 @@ def load_blender(root, *, resolution: int | None = None, max_width: int | None =
                  init_points: str = "auto") -> Scene:
     """Read a Blender/NeRF-synthetic folder. With transforms_train.json the split comes from the files
     (transforms_test.json is the test set; test_every is ignored); a single transforms.json is split by
-    test_every. skip_missing: leave out frames whose image does not exist (scene.notes lists them) instead of
-    stopping with an error. init_points (used only without a point cloud): "auto", "triangulate" or "random".
-    See the module docstring for lens distortion and how initial points are chosen."""
+    test_every. skip_missing: leave out frames whose image (or, with masks, whose mask_path) does not exist
+    (scene.notes lists them) instead of stopping with an error. init_points (used only without a point cloud):
+    "auto", "triangulate" or "random". See the module docstring for lens distortion and how initial points are
+    chosen."""
     if init_points not in INIT_POINTS:
         raise DataError(f"init_points={init_points!r:.60}: choose one of {', '.join(INIT_POINTS)}")
     root = Path(root)
@@ -581,6 +652,11 @@ def _notes(found: list[_Loaded]) -> list[str]:
             listing = ", ".join(f.skipped[:10]) + (f", ... ({len(f.skipped) - 10} more)" if len(f.skipped) > 10 else "")
             notes.append(f"{name}: skipped {len(f.skipped)} frame{'s' if len(f.skipped) > 1 else ''} whose images are "
                          f"missing: {listing}")
+        if f.skipped_masks:
+            listing = ", ".join(f.skipped_masks[:10]) + (f", ... ({len(f.skipped_masks) - 10} more)"
+                                                         if len(f.skipped_masks) > 10 else "")
+            notes.append(f"{name}: skipped {len(f.skipped_masks)} frame{'s' if len(f.skipped_masks) > 1 else ''} "
+                         f"whose masks are missing: {listing}")
         if f.distorted:
             notes.append(f"{name}: {f.distorted} frame(s) have lens distortion: training on undistorted copies of "
                          f"their photos (pinhole cameras, as COLMAP's undistorter makes them) in {UNDISTORTED_DIR}/")
@@ -741,6 +817,6 @@ def is_blender(root: Path) -> bool:
 
 # Before COLMAP: an instant-ngp / nerfstudio folder holds transforms.json next to an images/ folder.
 FORMAT = DatasetFormat(
-    "blender", is_blender, load_blender, priority=10,
+    "blender", is_blender, load_blender, priority=10, has_masks=names_masks,
     needs="transforms_train.json (and transforms_test.json) or one transforms.json, whose frames give each "
           "image's file_path and transform_matrix, with camera_angle_x or fl_x")

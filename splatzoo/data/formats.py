@@ -13,7 +13,7 @@ from pathlib import Path
 from ..errors import DataError
 from ..registry import Registry
 from . import blender, colmap
-from .scene import DatasetFormat, Scene, check_cameras, image_size
+from .scene import DatasetFormat, MissingMaskError, Scene, check_cameras, image_size
 
 FORMATS: Registry[DatasetFormat] = Registry("dataset format")
 
@@ -112,13 +112,15 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     elif not path.is_dir():
         detect_format(path)  # the missing-folder / not-a-folder messages
     capped = resolution is None and max_width is None  # large photos are downscaled unless asked otherwise
-    reader = FORMATS.get(format).load
+    fmt = FORMATS.get(format)
+    reader = fmt.load
     skipping = _takes(reader, "skip_missing")
-    # masks="auto": a dataset's masks/ are read when present (eval measures opacity inside them; --background random
-    # replaces the backdrop through them, see data/background.py); incomplete masks are left out, not an error
+    # masks="auto": a dataset's masks/ (or the masks its format names, e.g. a transforms file's mask_path) are read
+    # when present (eval measures opacity inside them; --background random replaces the backdrop through them, see
+    # data/background.py); an incomplete masks/ folder is left out, not an error, but a mask the files name must exist
     auto_masks = masks == "auto"
     if auto_masks:
-        masks = (path / "masks").is_dir()
+        masks = fmt.has_masks(path) if fmt.has_masks is not None else (path / "masks").is_dir()
 
     def read(masks: bool):
         return reader(path, resolution=resolution, max_width=DEFAULT_MAX_WIDTH if capped else max_width,
@@ -128,7 +130,7 @@ def load_scene(path, *, resolution: int | None = None, max_width: int | None = N
     try:
         scene = read(masks)
     except DataError as e:
-        if not (auto_masks and masks and "mask" in str(e)):
+        if not (auto_masks and masks and "mask" in str(e)) or isinstance(e, MissingMaskError):
             raise
         scene = read(False)
         scene.notes.append(f"masks/ not used: {str(e).split(';')[0]}")

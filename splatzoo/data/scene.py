@@ -20,6 +20,12 @@ import torch
 from ..errors import DataError
 from ..types import Camera
 
+
+class MissingMaskError(DataError):
+    """A mask that the dataset's own files name but that does not exist: loading stops (masks="auto" does not fall
+    back to loading without masks, as it does for an incomplete masks/ folder)."""
+
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr")
 
 
@@ -241,26 +247,41 @@ class View:
     # Premultiplied RGB (+ alpha) at camera size: resizing premultiplied colour keeps edges free of fringes.
     def _premultiplied(self) -> np.ndarray:
         w, h = self.camera.width, self.camera.height
-
-        def load() -> np.ndarray:
-            px = self.pixels if self.pixels is not None else read_image(self.path)
-            if px.shape[2] == 4:
-                f = px.astype(np.float32)
-                a = f[:, :, 3:4] / 255.0
-                f = np.concatenate([f[:, :, :3] * a, f[:, :, 3:4]], axis=2)
-                f = _resize(f, w, h)
-                return (np.clip(f, 0, 255) + 0.5).astype(np.uint8)
-            return _resize(np.ascontiguousarray(px[:, :, :3]), w, h)
-
         if self.pixels is not None:
-            return load()
-        return PIXEL_CACHE.get(("img", str(self.path), w, h), load)
+            return self._premultiplied_at(w, h)
+        return PIXEL_CACHE.get(("img", str(self.path), w, h), lambda: self._premultiplied_at(w, h))
+
+    def _premultiplied_at(self, w: int, h: int) -> np.ndarray:
+        px = self.pixels if self.pixels is not None else read_image(self.path)
+        if px.shape[2] == 4:
+            f = px.astype(np.float32)
+            a = f[:, :, 3:4] / 255.0
+            f = np.concatenate([f[:, :, :3] * a, f[:, :, 3:4]], axis=2)
+            f = _resize(f, w, h)
+            return (np.clip(f, 0, 255) + 0.5).astype(np.uint8)
+        return _resize(np.ascontiguousarray(px[:, :, :3]), w, h)
+
+    def source_size(self) -> tuple[int, int]:
+        """(width, height) of the image as stored (the file, or the in-memory pixels), whatever the camera's size."""
+        if self.pixels is not None:
+            return int(self.pixels.shape[1]), int(self.pixels.shape[0])
+        if self.path is not None:
+            return image_size(self.path)
+        return self.camera.width, self.camera.height
 
     def image(self) -> torch.Tensor:
         """uint8 [H,W,3] at camera size."""
         px = self._premultiplied()
         if px.shape[2] == 3:
             return torch.from_numpy(px.copy())
+        return (self._composite(px) * 255 + 0.5).to(torch.uint8)
+
+    def image_at(self, width: int, height: int) -> torch.Tensor:
+        """uint8 [height,width,3]: the image resized to another size than the camera's (transparency over the view's
+        background), decoded afresh and not kept in the pixel cache, which holds what training reads."""
+        px = self._premultiplied_at(width, height)
+        if px.shape[2] == 3:
+            return torch.from_numpy(np.array(px))   # a copy: px may be the view's own pixels
         return (self._composite(px) * 255 + 0.5).to(torch.uint8)
 
     def image_float(self, background=None) -> torch.Tensor:
@@ -337,6 +358,7 @@ class DatasetFormat:
     load(path, *, resolution, max_width, test_every, background, masks) -> Scene.
     needs: what a folder of this format holds, shown when no format recognises a folder.
     priority: lower is tried first, so a specific layout wins over a generic one that also matches.
+    has_masks(path) -> bool: whether masks="auto" reads masks (default: the folder has masks/).
     """
 
     name: str
@@ -344,6 +366,7 @@ class DatasetFormat:
     load: Callable[..., Scene]
     needs: str
     priority: int = 100
+    has_masks: Callable[[Path], bool] | None = None
 
 
 # --- helpers shared by the readers --------------------------------------------------------------------------
