@@ -148,3 +148,26 @@ def test_triangulate_points_needs_two_views(boots):
     scene = load_scene(data, test_every=0)
     with pytest.raises(Exception, match="at least 2"):
         triangulate_points(scene.train[:1])
+
+
+def test_points_are_triangulated_at_the_photos_size_whatever_the_training_size(boots, capsys):
+    from splatzoo.data.scene import PIXEL_CACHE
+    from splatzoo.data.triangulate import working_camera
+
+    _, data = boots
+    (data / CACHE_NAME).unlink(missing_ok=True)
+    PIXEL_CACHE.clear()
+    small = load_scene(data, test_every=0, resolution=4)          # trained at 48x48
+    assert small.train[0].camera.width == 48
+    assert "triangulating from the known poses of 12 images (192x192)" in capsys.readouterr().err
+    # the photos were read at their own size without filling the cache that training reads from
+    assert not [k for k in PIXEL_CACHE._items if k[2] != 48]
+    assert all((c.width, c.height) == (192, 192) for c in (working_camera(v) for v in small.train))
+    assert [(c.width, c.height) for c in (working_camera(v, 100) for v in small.train[:1])] == [(100, 100)]
+    # one triangulation for every training size
+    full = load_scene(data, test_every=0, resolution=1)
+    assert "reusing" in capsys.readouterr().err
+    assert torch.equal(full.points, small.points) and torch.equal(full.colors, small.colors)
+    # at the training size (what was done before) far fewer points are found
+    at_48, _ = triangulate_points(small.train, long_side=48)
+    assert len(at_48) < 0.5 * len(small.points), (len(at_48), len(small.points))

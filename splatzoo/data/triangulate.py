@@ -1,16 +1,19 @@
 """Initial points for posed images without a point cloud: SIFT features matched between the images and triangulated
 from the known cameras (pycolmap), in place of a random box.
 
-The views' images are written (at most MAX_WIDTH pixels wide, intrinsics scaled with them) into a temporary COLMAP
-workspace; features are extracted (one PINHOLE camera per image, set to the known intrinsics) and matched:
-every pair for up to EXHAUSTIVE_MAX images, beyond that each image with its NEIGHBOURS nearest cameras (by centre
-distance and viewing direction: cameras far apart or looking away from each other see little in common). pycolmap's
+The views' photos are written at their own size whatever size training uses (a longer side than LONG_SIDE pixels
+downscaled to it, intrinsics scaled with them) into a temporary COLMAP workspace: fewer pixels give fewer features,
+and the fox's photos at the 1/8 size of its training gave a third of the points they gave at 1/4. Features are
+extracted (one PINHOLE camera per image, set to the known intrinsics) and matched: every pair for up to
+EXHAUSTIVE_MAX images, beyond that each image with its NEIGHBOURS nearest cameras (by centre distance and viewing
+direction: cameras far apart or looking away from each other see little in common). pycolmap's
 point triangulator then triangulates and refines the points with the poses and intrinsics held fixed. Points seen by
 fewer than MIN_TRACK images, with a mean reprojection error above MAX_ERROR_PX, or not finite are dropped.
 
 The result is cached beside the dataset (CACHE_NAME, or under ~/.cache/splatzoo/triangulated/ when the dataset
-folder is read-only), keyed by a stamp of the frames' names, image files, sizes, intrinsics and poses, so a second
-load does not triangulate again. A result with few or no points is cached too (the caller decides what is enough).
+folder is read-only), keyed by a stamp of the frames' names, image files, working sizes and poses and by their working
+intrinsics (compared within float32 rounding, so loads at any training resolution share it), so a second load does
+not triangulate again. A result with few or no points is cached too (the caller decides what is enough).
 """
 from __future__ import annotations
 
@@ -28,17 +31,17 @@ import numpy as np
 from ..errors import DataError
 from ..types import Camera
 from .colmap import import_pycolmap, quiet_colmap
-from .scene import View, scale_camera
+from .scene import View
 from .sfm import _image_ids, _say, match_pairs
 
-MAX_WIDTH = 800            # images are downscaled to at most this width for speed
+LONG_SIDE = 1600           # photos with a longer side than this are downscaled to it (for speed)
 MAX_IMAGES = 200           # at most this many views (evenly spread over the list) are used
 EXHAUSTIVE_MAX = 40        # up to this many images every pair is matched ...
 NEIGHBOURS = 15            # ... beyond, each image with its nearest cameras
 MIN_TRACK = 3              # a point must be seen in at least this many images
 MAX_ERROR_PX = 2.0         # and reproject within this many pixels (at the working resolution) on average
 CACHE_NAME = "triangulated_points.npz"
-_VERSION = 1               # part of the cache stamp: bump when the method changes what it returns
+_VERSION = 2               # part of the cache stamp: bump when the method changes what it returns
 
 
 def select_views(views: list[View], max_images: int = MAX_IMAGES) -> list[View]:
@@ -49,19 +52,34 @@ def select_views(views: list[View], max_images: int = MAX_IMAGES) -> list[View]:
     return [views[i] for i in keep]
 
 
-def _working_camera(cam: Camera, max_width: int) -> Camera:
-    factor = min(1.0, max_width / cam.width)
-    return scale_camera(cam, factor)
+def working_camera(view: View, long_side: int = LONG_SIDE) -> Camera:
+    """The view's camera (float64) at the size of its photo (view.source_size), downscaled so its long side is at most
+    `long_side`: the same camera whatever size the view is trained at."""
+    import dataclasses
+
+    import torch
+
+    cam = view.camera
+    w, h = view.source_size()
+    shrink = min(1.0, long_side / max(w, h))
+    width, height = max(1, round(w * shrink)), max(1, round(h * shrink))
+    K = cam.K.double().clone()
+    K[0] *= width / cam.width      # per axis, as the photo is resized: a training size rounds each side apart
+    K[1] *= height / cam.height
+    return dataclasses.replace(cam.to(dtype=torch.float64), K=K, width=width, height=height)
 
 
-def stamp(views: list[View], max_width: int = MAX_WIDTH) -> str:
-    """What a triangulation is made from: each view's name, image file (path, size, time) or pixels, camera size,
-    intrinsics and pose, and the method's settings."""
-    h = hashlib.sha1(f"v{_VERSION}|{max_width}|{MIN_TRACK}|{MAX_ERROR_PX}|{NEIGHBOURS}".encode())
-    for v in views:
-        cam = v.camera
+def _intrinsics(cams: list[Camera]) -> np.ndarray:
+    """[N,4] fx, fy, cx, cy in float64."""
+    return np.array([[float(c.K[0, 0]), float(c.K[1, 1]), float(c.K[0, 2]), float(c.K[1, 2])] for c in cams])
+
+
+def stamp(views: list[View], cams: list[Camera]) -> str:
+    """What a triangulation is made from, but for the intrinsics (compared apart, see _read_cache): each view's name,
+    image file (path, size, time) or pixels, working size (cams) and pose, and the method's settings."""
+    h = hashlib.sha1(f"v{_VERSION}|{MIN_TRACK}|{MAX_ERROR_PX}|{NEIGHBOURS}".encode())
+    for v, cam in zip(views, cams):
         h.update(f"|{v.name}|{cam.width}x{cam.height}|{v.background}".encode())
-        h.update(np.round(cam.K.double().numpy(), 6).tobytes())
         h.update(np.round(cam.world_to_camera.double().numpy(), 7).tobytes())
         if v.pixels is not None:
             h.update(np.ascontiguousarray(v.pixels).tobytes())
@@ -84,10 +102,15 @@ def cache_file(folder) -> Path:
     return cache / hashlib.sha1(str(folder.resolve()).encode()).hexdigest()[:16] / CACHE_NAME
 
 
-def _read_cache(path: Path, key: str):
+def _read_cache(path: Path, key: str, intrinsics: np.ndarray):
+    """The cached points and colours when the stamp matches and so do the intrinsics, within float32 rounding: a view
+    loaded at 1/8 size and scaled back to its photo's size differs from one loaded at 1/4 in the last bits."""
     try:
         with np.load(path, allow_pickle=False) as f:
             if str(f["stamp"]) != key:
+                return None
+            cached = f["intrinsics"]
+            if cached.shape != intrinsics.shape or not np.allclose(cached, intrinsics, rtol=1e-5, atol=1e-3):
                 return None
             points, colors = f["points"].astype(np.float32), f["colors"].astype(np.float32)
     except (OSError, KeyError, ValueError, EOFError):
@@ -97,14 +120,14 @@ def _read_cache(path: Path, key: str):
     return points, colors
 
 
-def _write_cache(path: Path, key: str, points: np.ndarray, colors: np.ndarray) -> None:
+def _write_cache(path: Path, key: str, intrinsics: np.ndarray, points: np.ndarray, colors: np.ndarray) -> None:
     """Write atomically (a temporary file, then rename); a cache that cannot be written is only a lost speed-up."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
         try:
             with os.fdopen(fd, "wb") as f:
-                np.savez(f, stamp=np.array(key), points=points, colors=colors)
+                np.savez(f, stamp=np.array(key), intrinsics=intrinsics, points=points, colors=colors)
             os.replace(tmp, path)
         finally:
             Path(tmp).unlink(missing_ok=True)
@@ -137,15 +160,11 @@ def neighbour_pairs(cameras: list[Camera], k: int = NEIGHBOURS) -> list[tuple[in
 def _write_images(views: list[View], cams: list[Camera], folder: Path) -> list[str]:
     """Each view's image at its working camera's size as folder/00000.png, ... (written by pycolmap itself: OpenCV's
     PNG writer and pycolmap's bundled zlib can clash in one process)."""
-    import cv2
-
     pycolmap = import_pycolmap()
     folder.mkdir(parents=True)
     names = []
     for i, (v, cam) in enumerate(zip(views, cams)):
-        px = v.image().numpy()   # uint8 [H,W,3] at the view's camera size, transparency over its background
-        if (px.shape[1], px.shape[0]) != (cam.width, cam.height):
-            px = cv2.resize(px, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        px = v.image_at(cam.width, cam.height).numpy()   # uint8 [H,W,3], transparency over its background
         name = f"{i:05d}.png"
         if not pycolmap.Bitmap.from_array(np.ascontiguousarray(px)).write(str(folder / name), False):
             raise DataError(f"cannot write a working copy of {v.name} for triangulation in {folder}")
@@ -209,12 +228,13 @@ def _filtered(rec) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(pts, np.float32), np.clip(np.asarray(cols, np.float32), 0, 1)
 
 
-def triangulate_points(views: list[View], *, max_images: int = MAX_IMAGES, max_width: int = MAX_WIDTH,
+def triangulate_points(views: list[View], *, max_images: int = MAX_IMAGES, long_side: int = LONG_SIDE,
                        cache_dir=None, progress=None, num_threads: int = -1) -> tuple[np.ndarray, np.ndarray]:
     """Points [M,3] float32 and colours [M,3] float32 in [0,1] triangulated from the views' images and known cameras.
 
-    max_images: use at most this many views (spread evenly). max_width: downscale images wider than this (intrinsics
-    follow). cache_dir: the dataset folder; the result is kept there (see cache_file) and reused while the views are
+    max_images: use at most this many views (spread evenly). The photos are used at their own size (not the views'
+    training size), downscaled to `long_side` pixels on their longer side when larger (intrinsics follow).
+    cache_dir: the dataset folder; the result is kept there (see cache_file) and reused while the views are
     unchanged. progress: True prints steps to stderr, a callable receives each message. Raises DataError when
     pycolmap fails; too few textured, overlapping images give few or no points instead (not an error).
     """
@@ -222,16 +242,16 @@ def triangulate_points(views: list[View], *, max_images: int = MAX_IMAGES, max_w
     views = select_views(views, max_images)
     if len(views) < 2:
         raise DataError(f"triangulation needs at least 2 posed images, got {len(views)}")
-    key = stamp(views, max_width)
+    cams = [working_camera(v, long_side) for v in views]
+    key, intrinsics = stamp(views, cams), _intrinsics(cams)
     cache = cache_file(cache_dir) if cache_dir is not None else None
     if cache is not None:
-        hit = _read_cache(cache, key)
+        hit = _read_cache(cache, key, intrinsics)
         if hit is not None:
             say(f"initial points: reusing {len(hit[0])} triangulated points from {cache}")
             return hit
     pycolmap = import_pycolmap()
     t0 = time.perf_counter()
-    cams = [_working_camera(v.camera, max_width) for v in views]
     work = Path(tempfile.mkdtemp(prefix="splatzoo-triangulate-"))
     try:
         images = work / "images"
@@ -276,5 +296,5 @@ def triangulate_points(views: list[View], *, max_images: int = MAX_IMAGES, max_w
     say(f"      {len(points)} points (of {rec.num_points3D()} triangulated: seen in at least {MIN_TRACK} images, "
         f"within {MAX_ERROR_PX:g} px) in {time.perf_counter() - t0:.1f} s")
     if cache is not None:
-        _write_cache(cache, key, points, colors)
+        _write_cache(cache, key, intrinsics, points, colors)
     return points, colors
