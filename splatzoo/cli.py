@@ -20,19 +20,65 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 
 @app.command("models")
 def models_command(
-    verbose: bool = typer.Option(False, "--verbose", "-v", help="also list each model's options"),
+    verbose: bool = typer.Option(False, "--verbose", "-v",
+                                 help="also list the models' options: those several models share once, then each "
+                                      "model's own"),
 ) -> None:
     """List the available models: name, origin (built-in or plugin) and description; broken plugins say why."""
-    from .options import describe_options
     from .registry import MODELS
 
-    for entry in MODELS.entries():
+    entries = MODELS.entries()
+    for entry in entries:
         if entry.broken:
             typer.echo(f"{entry.name:<14} {entry.origin:<24} BROKEN: {entry.error}")
-            continue
-        typer.echo(f"{entry.name:<14} {entry.origin:<24} {entry.spec.description}")
-        if verbose:
-            typer.echo(describe_options(entry.name))
+        else:
+            typer.echo(f"{entry.name:<14} {entry.origin:<24} {entry.spec.description}")
+    if not verbose:
+        return
+    shared, own = option_groups({e.name: e.spec.config_cls for e in entries if not e.broken})
+    typer.echo("\nModel options: train --model NAME --option VALUE, or NAME:option=value wherever a model is named.")
+    if shared:
+        typer.echo("\nShared by several models:")
+        for names, rows in shared:
+            typer.echo(f"{', '.join(names)}:")
+            typer.echo("\n".join(_option_line(row) for row in rows))
+    typer.echo("\nEach model's own:" if shared else "")
+    for name, rows in own.items():
+        if rows:
+            typer.echo(f"{name}:")
+            typer.echo("\n".join(_option_line(row) for row in rows))
+    sharing = [name for name, rows in own.items() if not rows and any(name in names for names, _ in shared)]
+    empty = [name for name, rows in own.items() if not rows and name not in sharing]
+    if sharing:
+        typer.echo(f"(only shared options: {', '.join(sharing)})")
+    if empty:
+        typer.echo(f"(no options: {', '.join(empty)})")
+
+
+def option_groups(configs: dict) -> tuple[list, dict]:
+    """Model options with those several models share stated once: {model: config class} -> (shared, own).
+    shared: [(model names, rows)], the rows (flag, type name, default, help) that exactly those models have alike
+    (flag, type, default and help), the widest groups first; own: {model: rows no other model has alike}."""
+    from .options import option_fields
+
+    rows = {name: [(flag, getattr(typ, "__name__", str(typ)), default, hlp)
+                   for flag, typ, default, hlp in option_fields(cls)] for name, cls in configs.items()}
+    holders: dict = {}
+    for name, model_rows in rows.items():
+        for row in model_rows:
+            holders.setdefault(row, []).append(name)
+    groups: dict = {}
+    for row, names in holders.items():  # first seen first, so each group keeps its first model's field order
+        if len(names) > 1:
+            groups.setdefault(tuple(names), []).append(row)
+    shared = sorted(groups.items(), key=lambda g: (-len(g[0]), g[0]))
+    own = {name: [row for row in model_rows if len(holders[row]) == 1] for name, model_rows in rows.items()}
+    return shared, own
+
+
+def _option_line(row) -> str:
+    flag, typ, default, hlp = row
+    return f"  {flag} {typ.upper()}  {hlp} (default {default})"
 
 
 def _print_version(value: bool) -> None:
