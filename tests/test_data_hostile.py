@@ -184,3 +184,14 @@ def test_masks_a_transforms_file_names_are_used_and_missing_ones_refused_unless_
         load_scene(root, test_every=0)
     # masks=False asks for none: mask_path is not looked at
     assert len(load_scene(root, test_every=0, masks=False).train) == 4
+
+
+def test_a_folder_where_the_triangulation_cache_goes_is_named(tmp_path, capsys):
+    from splatzoo.data.triangulate import CACHE_NAME
+
+    root = write_capture(tmp_path / "d", "PINHOLE", {})
+    (root / CACHE_NAME).mkdir()
+    load_scene(root, test_every=0)
+    err = capsys.readouterr().err
+    assert f"warning: cannot keep the triangulated points in {root / CACHE_NAME}" in err, err
+    assert "move or delete what is there" in err

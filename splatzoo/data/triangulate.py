@@ -120,8 +120,9 @@ def _read_cache(path: Path, key: str, intrinsics: np.ndarray):
     return points, colors
 
 
-def _write_cache(path: Path, key: str, intrinsics: np.ndarray, points: np.ndarray, colors: np.ndarray) -> None:
-    """Write atomically (a temporary file, then rename); a cache that cannot be written is only a lost speed-up."""
+def _write_cache(path: Path, key: str, intrinsics: np.ndarray, points: np.ndarray, colors: np.ndarray) -> str | None:
+    """Write atomically (a temporary file, then rename). A cache that cannot be written is only a lost speed-up, but
+    one lost at every load: returns why, for the caller to say."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
@@ -131,8 +132,9 @@ def _write_cache(path: Path, key: str, intrinsics: np.ndarray, points: np.ndarra
             os.replace(tmp, path)
         finally:
             Path(tmp).unlink(missing_ok=True)
-    except OSError:
-        pass
+    except OSError as e:
+        return e.strerror or str(e)
+    return None
 
 
 def neighbour_pairs(cameras: list[Camera], k: int = NEIGHBOURS) -> list[tuple[int, int]]:
@@ -296,5 +298,8 @@ def triangulate_points(views: list[View], *, max_images: int = MAX_IMAGES, long_
     say(f"      {len(points)} points (of {rec.num_points3D()} triangulated: seen in at least {MIN_TRACK} images, "
         f"within {MAX_ERROR_PX:g} px) in {time.perf_counter() - t0:.1f} s")
     if cache is not None:
-        _write_cache(cache, key, intrinsics, points, colors)
+        failed = _write_cache(cache, key, intrinsics, points, colors)
+        if failed:
+            say(f"warning: cannot keep the triangulated points in {cache} ({failed}), so every load triangulates "
+                "again; make that path a writable file (move or delete what is there)")
     return points, colors
