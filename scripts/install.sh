@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up splatzoo on a Linux machine (CPU): system packages, a Python environment, a pinned torch, splatzoo with its
-# mesh and dev extras, the offline LPIPS weights, and the Node.js splat tools (spz/sog export, viewer tests). Safe to
-# re-run: finished steps are skipped or quick.
+# mesh, viewer and dev extras (dev includes docs: the pinned mkdocs that builds the reference with
+# `mkdocs build --strict`), the offline LPIPS weights, and the Node.js splat tools (spz/sog export, viewer tests).
+# Safe to re-run: finished steps are skipped or quick.
 #
 #   bash scripts/install.sh [--no-venv] [--dry-run]
 #
@@ -212,7 +213,7 @@ else pip_install "torch==$TORCH"
 fi
 took
 
-# ---- 4. splatzoo, editable, with its dependencies
+# ---- 4. splatzoo, editable, with its dependencies (the dev extra brings the test tools and the docs extra)
 step "splatzoo and its dependencies"
 pip_install -e ".[mesh,viewer,dev]"
 took
