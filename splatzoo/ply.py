@@ -11,6 +11,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from .atomic import atomic_path
 from .errors import SplatzooError
 
 PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -284,8 +285,6 @@ def write_ply_vertices(path, arr, comments=(), *, text: bool = False) -> Path:
     """Write the structured array `arr` as the vertex element of a little-endian binary (or ASCII) PLY, atomically,
     with `comments` as header comments in order. Returns the path."""
     import plyfile
-
-    from .io import atomic_path
 
     path = Path(path)
     element = plyfile.PlyElement.describe(arr, "vertex")
