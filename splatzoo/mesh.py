@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
-from .io import atomic_path, say_progress as _say
+from .io import say_progress as _say
+from .mesh_files import write_mesh
 from .types import Camera
 
 DEPTH_KINDS = ("median", "expected")
@@ -247,32 +248,6 @@ def extract_mesh(model, cameras: list[Camera], *, voxel_size: float | None = Non
         say(f"kept the largest component: {stats.triangles} of {before} triangles")
     say(f"mesh: {stats.vertices} vertices, {stats.triangles} triangles ({stats.seconds:.1f} s)")
     return mesh, params, stats
-
-
-def write_mesh(mesh, path) -> Path:
-    """Write an open3d legacy TriangleMesh (binary, with vertex colours) atomically; the format follows the
-    suffix (.ply recommended).
-
-    .obj and .glb are written by splatzoo.mesh_texture: open3d's OBJ header names the file it wrote (here the
-    temporary name of the atomic write), and its GLB (buffer as a data URI, wrong index bounds) is not read back
-    by open3d itself. Vertex colours go into the OBJ as `v x y z r g b` and into the GLB as COLOR_0."""
-    import open3d as o3d
-
-    path = Path(path)
-    if path.is_dir():
-        raise SplatzooError(f"cannot write the mesh to {path}: it is a folder; give a file name such as {path / 'mesh.ply'}")
-    if path.suffix.lower() in (".obj", ".glb"):
-        from .mesh_texture import TexturedMesh, write_textured_mesh
-
-        if len(mesh.triangles) == 0:
-            raise SplatzooError(f"cannot write {path}: the mesh has no triangles")
-        return write_textured_mesh(TexturedMesh.from_open3d(mesh), path, unlit=False)
-    with atomic_path(path) as tmp:
-        ok = o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, write_vertex_colors=True)
-        if not ok:
-            raise SplatzooError(f"open3d could not write the mesh to {path}; use a .ply (or .obj/.off/.stl/.glb) file "
-                                "name in a writable folder with free space")
-    return path
 
 
 def extract_mesh_from_run(run_dir, out=None, *, backend: str = "auto", progress=None, **options) -> Path:
