@@ -2,13 +2,22 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from splatzoo.cli import app, option_groups
 from splatzoo.registry import MODELS
 
 runner = CliRunner()
+REPO = Path(__file__).parents[1]
+HAVE_MKDOCS = all(importlib.util.find_spec(m) is not None for m in ("mkdocs", "mkdocstrings", "mkdocstrings_handlers"))
 
 
 def _option_sections(output: str) -> dict[tuple[str, ...], list[str]]:
@@ -63,3 +72,43 @@ def test_option_groups_keep_differing_defaults_apart():
     assert [row[:3] for row in own["a"]] == [("--n-waves", "int", 4)]
     assert [row[:3] for row in own["b"]] == [("--n-waves", "int", 8)]
     assert [row[0] for row in own["c"]] == ["--alone"]
+
+
+@pytest.mark.skipif(not HAVE_MKDOCS, reason="mkdocs is not installed (pip install -e .[docs])")
+def test_the_docs_build_without_a_warning(tmp_path):
+    """`mkdocs build --strict` (as CI runs it): a docstring that breaks the build, a reference to a function that
+    moved, a command whose --help fails, or a broken link between pages fails here."""
+    site = tmp_path / "site"
+    r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--config-file", str(REPO / "mkdocs.yml"),
+                        "--site-dir", str(site)], cwd=REPO, capture_output=True, text=True, timeout=600,
+                       env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
+    assert r.returncode == 0, r.stderr[-4000:]
+    assert "WARNING" not in r.stderr, r.stderr[-4000:]
+    api = (site / "api" / "models" / "index.html").read_text()
+    assert "create_model" in api and "load_model" in api and "save_model" in api
+    commands = (site / "commands" / "index.html").read_text()
+    assert "Usage: splatzoo train" in commands and "Usage: splatzoo export" in commands  # quoted from --help
+    models = (site / "models" / "index.html").read_text()
+    assert "beta-gabor" in models and "--color-param" in models and "&lt;!-- splatzoo:" not in models
+
+
+def test_readme_links_reach_pages_that_exist():
+    readme = (REPO / "README.md").read_text()
+    links = re.findall(r"\]\(((?:docs/|BENCHMARKS)[^)#]*)", readme)
+    assert any(link.startswith("docs/") for link in links), "README.md links to no reference page"
+    assert [link for link in links if not (REPO / link).is_file()] == []
+
+
+def test_every_page_is_in_the_site_navigation():
+    nav = (REPO / "mkdocs.yml").read_text()
+    pages = [p.relative_to(REPO / "docs").as_posix() for p in (REPO / "docs").rglob("*.md")]
+    assert [p for p in pages if f": {p}" not in nav] == []
+
+
+def test_the_python_on_the_reference_pages_runs(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the quick tour writes model.pt
+    blocks = [(page.name, code) for page in sorted((REPO / "docs").rglob("*.md"))
+              for code in re.findall(r"```python\n(.*?)```", page.read_text(), re.S)]
+    assert {name for name, _ in blocks} >= {"getting-started.md", "plugins.md"}
+    for name, code in blocks:
+        exec(compile(code, name, "exec"), {})
