@@ -1,4 +1,5 @@
-"""Render a splat PLY in third-party three.js splat viewers (Spark, GaussianSplats3D) in headless Chromium.
+"""Render a splat PLY in third-party three.js splat viewers (Spark, GaussianSplats3D), and a glTF splat file
+(KHR_gaussian_splatting) in the PlayCanvas engine, in headless Chromium.
 
 A helper for tests and benchmarks, not a test file. tests/browser/ is a small npm project (pinned versions, a lock
 file) with a static page that loads a PLY, sets the viewer's camera from a splatzoo `Camera` (intrinsics exactly,
@@ -7,8 +8,10 @@ local HTTP server on 127.0.0.1 serves that folder and the PLY, and Playwright dr
 
     with BrowserViewers() as b:
         img = b.render("model.ply", camera, viewer="spark", background=(1, 1, 1))   # [H, W, 3] float in [0, 1]
+        img = b.render_gltf("model.glb", camera)                                        # PlayCanvas
     img = render_in_viewer("model.ply", camera, viewer="gs3d")                     # one call, one browser
 
+The glTF viewer has its own page (playcanvas.html, playcanvas.js), so the PLY viewers' page never loads the engine.
 Needs Chromium (apt-get install -y chromium), Playwright (pip) and the viewers (npm ci --prefix tests/browser).
 """
 from __future__ import annotations
@@ -30,6 +33,8 @@ from splatzoo.errors import SplatzooError
 BROWSER_DIR = Path(__file__).resolve().parent / "browser"
 VIEWERS = ("spark", "gs3d")
 PACKAGES = ("three", "@sparkjsdev/spark", "@mkkellogg/gaussian-splats-3d")
+GLTF_VIEWERS = ("playcanvas",)   # read glTF binaries with KHR_gaussian_splatting
+GLTF_PACKAGES = ("playcanvas",)
 CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 
 
@@ -42,15 +47,16 @@ def find_chromium() -> str | None:
     return "/usr/bin/chromium" if os.path.exists("/usr/bin/chromium") else None
 
 
-def missing() -> str | None:
-    """What is missing to render in the browser viewers (and how to install it), or None when all is there."""
+def missing(packages: tuple[str, ...] = PACKAGES) -> str | None:
+    """What is missing to render in the browser viewers of `packages` (PACKAGES: the PLY viewers; GLTF_PACKAGES:
+    PlayCanvas) and how to install it, or None when all is there."""
     if find_chromium() is None:
         return "no Chromium found: install it (apt-get install -y chromium)"
     try:
         import playwright.sync_api  # noqa: F401
     except ImportError:
         return "Playwright is not installed: pip install playwright"
-    absent = [p for p in PACKAGES if not (BROWSER_DIR / "node_modules" / p / "package.json").exists()]
+    absent = [p for p in packages if not (BROWSER_DIR / "node_modules" / p / "package.json").exists()]
     if absent:
         return (f"the splat viewers are not installed ({', '.join(absent)} missing under tests/browser/node_modules): "
                 "run npm ci --prefix tests/browser")
@@ -115,10 +121,11 @@ class ViewerServer:
 
 
 class BrowserViewers:
-    """Headless Chromium with the viewer page; `render` gives one frame of a PLY in a viewer. A context manager."""
+    """Headless Chromium with the viewer pages; `render` gives one frame of a PLY in a three.js viewer, `render_gltf`
+    one of a glTF splat file in PlayCanvas. A context manager; `packages`: the viewers it needs (see `missing`)."""
 
-    def __init__(self, timeout_s: float = 60.0):
-        reason = missing()
+    def __init__(self, timeout_s: float = 60.0, packages: tuple[str, ...] = PACKAGES):
+        reason = missing(packages)
         if reason:
             raise SplatzooError(reason)
         self.timeout_ms = timeout_s * 1000
@@ -157,13 +164,38 @@ class BrowserViewers:
             raise SplatzooError(f"unknown viewer {viewer!r}; known: {', '.join(VIEWERS)}")
         if not Path(ply_path).is_file():
             raise SplatzooError(f"no PLY file at {ply_path}; write one with splatzoo.export.save_ply")
-        from PIL import Image
-
         args = {"url": self._server.add_file(ply_path), "viewer": viewer, "camera": camera_json(camera),
                 "background": [float(c) for c in background], "options": options or {}}
         result = self._evaluate("window.splatReady", "window.renderSplat", args,
                                 f"{viewer} failed to render {ply_path}",
                                 viewport={"width": int(camera.width), "height": int(camera.height)})
+        return self._image(result, camera, viewer)
+
+    def render_gltf(self, glb_path, camera, viewer: str = "playcanvas", background=(1.0, 1.0, 1.0),
+                    options: dict | None = None) -> np.ndarray:
+        """One frame of the glTF binary `glb_path` (KHR_gaussian_splatting splats) in `viewer` (the PlayCanvas
+        engine's own glb parser and splat renderer) from splatzoo `camera` over `background`, with the engine's
+        default settings unless `options` (fields of its GSplatParams, see tests/browser/playcanvas.js) says
+        otherwise. Returns [H, W, 3] float64 in [0, 1] (8-bit values from the canvas)."""
+        if viewer not in GLTF_VIEWERS:
+            raise SplatzooError(f"unknown glTF viewer {viewer!r}; known: {', '.join(GLTF_VIEWERS)}")
+        if not Path(glb_path).is_file():
+            raise SplatzooError(f"no glTF file at {glb_path}; write one with splatzoo.gltf_splats.write_glb_splats")
+        absent = missing(GLTF_PACKAGES)
+        if absent:
+            raise SplatzooError(absent)
+        args = {"url": self._server.add_file(glb_path), "camera": camera_json(camera),
+                "background": [float(c) for c in background], "options": options or {}}
+        result = self._evaluate("window.gltfSplatReady", "window.renderGltfSplat", args,
+                                f"{viewer} failed to render {glb_path}", page="playcanvas.html",
+                                viewport={"width": int(camera.width), "height": int(camera.height)})
+        return self._image(result, camera, viewer)
+
+    @staticmethod
+    def _image(result: dict, camera, viewer: str) -> np.ndarray:
+        """The page's PNG data URL as [H, W, 3] float64 in [0, 1], checked against the camera's size."""
+        from PIL import Image
+
         png = base64.b64decode(result["image"].split(",", 1)[1])
         img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64) / 255.0
         if img.shape != (camera.height, camera.width, 3):
@@ -183,23 +215,24 @@ class BrowserViewers:
                 if mesh_path.suffix.lower() == ".obj" and mtl.is_file() else None}
         return self._evaluate("window.meshReady", "window.loadMesh", args, f"three.js could not load {mesh_path}")
 
-    def _evaluate(self, ready: str, function: str, args: dict, failure: str, viewport: dict | None = None):
-        """await function(args) on a fresh page of the viewer site, once `ready` is true; a failure (with the page's
-        own errors) becomes a SplatzooError starting with `failure`."""
-        page = self._browser.new_page(**({"viewport": viewport} if viewport else {}))
+    def _evaluate(self, ready: str, function: str, args: dict, failure: str, viewport: dict | None = None,
+                  page: str = "index.html"):
+        """await function(args) on a fresh load of `page` of the viewer site, once `ready` is true; a failure (with
+        the page's own errors) becomes a SplatzooError starting with `failure`."""
+        tab = self._browser.new_page(**({"viewport": viewport} if viewport else {}))
         errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
+        tab.on("pageerror", lambda e: errors.append(str(e)))
         try:
-            page.set_default_timeout(self.timeout_ms)
-            page.goto(f"{self._server.url}/index.html")
-            page.wait_for_function(f"{ready} === true")
+            tab.set_default_timeout(self.timeout_ms)
+            tab.goto(f"{self._server.url}/{page}")
+            tab.wait_for_function(f"{ready} === true")
             try:
-                return page.evaluate(f"args => {function}(args)", args)
+                return tab.evaluate(f"args => {function}(args)", args)
             except Exception as e:
                 raise SplatzooError(f"{failure}: {e}"
                                    + (f" (page errors: {'; '.join(errors)})" if errors else "")) from None
         finally:
-            page.close()
+            tab.close()
 
 
 def render_in_viewer(ply_path, camera, viewer: str = "spark", background=(1.0, 1.0, 1.0),
