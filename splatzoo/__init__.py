@@ -10,7 +10,7 @@ import os as _os
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from .errors import SplatzooError  # noqa: E402
-from .export import load_ply  # noqa: E402
+from .model_ply import load_ply  # noqa: E402
 from .rasterizers import available_backends, rasterize
 from .registry import ModelSpec
 from .types import Camera, RenderOutput, Surfels

@@ -18,7 +18,7 @@ keeps. So the bake
    fit never saw.
 
 `bake_model` works on models in memory; `export_baked` reads a run folder or a model file and writes the baked
-model with `splatzoo.export.save_ply` (the `baked` export format).
+model with `splatzoo.model_ply.save_ply` (the `baked` export format).
 """
 from __future__ import annotations
 
@@ -570,14 +570,13 @@ def bake_model(model, cameras: list[Camera], options: BakeOptions | None = None,
 def load_source(source, backend: str = "auto"):
     """(model, cameras, the file the model was read from) of a run folder (its training cameras; orbit cameras when
     its dataset is gone) or a model file (.pt or .ply: orbit cameras), the model on the backend's device."""
-    from .export import load_source as load_model_source
-    from .rasterizers import select_backend
+    from .model_files import open_model
     from .runs import Run
 
-    model, path = load_model_source(Path(source))
-    model = model.to(select_backend(backend).torch_device())
+    opened = open_model(source, backend=backend)
+    model, path = opened.model, opened.file
     cameras = None
-    if Path(source).is_dir():
+    if opened.format == "run":
         try:
             cameras = [v.camera for v in Run(source).scene().train]
         except SplatzooError:  # the dataset moved, or the run trained on a scene in memory
@@ -587,9 +586,9 @@ def load_source(source, backend: str = "auto"):
 
 def export_baked(source, out, *, progress=None, **options) -> Path:
     """Bake the model of `source` (a run folder or a model file) into constant-colour splats and write them to the
-    PLY `out` with splatzoo.export.save_ply. `options` are BakeOptions fields (strings are parsed). Reports the bake
+    PLY `out` with splatzoo.model_ply.save_ply. `options` are BakeOptions fields (strings are parsed). Reports the bake
     error in dB through `progress` (a callable, or True to print)."""
-    from .export import save_ply
+    from .model_ply import save_ply
 
     opts = bake_options(**options)
     source, out = Path(source), Path(out)

@@ -37,6 +37,7 @@ import torch
 from .errors import SplatzooError
 from .io import json_line, read_json, read_torch, torch_save, write_json, write_text
 from .model_checks import check_fits_scene
+from .model_files import ModelFormat, open_model, register_format
 from .training import TrainConfig, Trainer
 from .training.trainer import test_psnr
 
@@ -341,16 +342,12 @@ class Run:
 
     def model(self, backend: str | None = None):
         """The trained model; with a backend name ("auto" too) on the device that backend renders on."""
-        from .rasterizers import select_backend
-        from .zoo import load_model
-
         if self.status != "finished":
             self.require_run()
             hint = (" (training was interrupted: finish it with `splatzoo train --resume --out "
                     f"{self.path}`)" if self.checkpoint_path.exists() else "")
             raise SplatzooError(f"{self.path} has no trained model (model.pt){hint}")
-        model = load_model(self.model_path)
-        return model.to(select_backend(backend).torch_device()) if backend is not None else model
+        return open_model(self.model_path, backend=backend).model
 
     def scene(self, record: dict | None = None, *, skip_missing: bool = False):
         """The run's dataset with its recorded load options (skip_missing: also leave out frames whose image has
@@ -538,6 +535,25 @@ class Run:
     def write_metrics(self, metrics: dict) -> None:
         write_json(self.metrics_path, metrics)
 
+
+def _open_run_folder(path, *, latest: bool = False):
+    """model_files' reader of a run folder: (its trained model, model.pt, ""); with `latest`, an interrupted run's
+    last checkpoint instead (and a note that says so), what a viewer shows of a run still training."""
+    run = Run(path)
+    if not latest:
+        return run.model(), run.model_path, ""
+    status = run.status
+    if status == "foreign":
+        raise SplatzooError(f"{path} is not a splatzoo run folder")
+    if status in ("new", "started"):
+        raise SplatzooError(f"{path} holds no model yet (no model.pt or checkpoint.pt); train it first")
+    if status == "finished":
+        return run.model(), run.model_path, ""
+    return open_model(run.checkpoint_path).model, run.checkpoint_path, "interrupted: showing its last checkpoint"
+
+
+register_format(ModelFormat("run", "a run folder written by `splatzoo train` (its model.pt)", _open_run_folder,
+                            folder=True))
 
 _TEMP = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.[A-Za-z0-9]+)?$")
 
@@ -823,14 +839,13 @@ def _check_backend(cfg: TrainConfig, *, spawn: bool) -> torch.device:
 def initial_model(path, model: str | None = None, model_options: dict | None = None):
     """The model of the file `path` (.ply or .pt) to start training from: it must be `model` (None: any), and with
     `model_options` its config must agree with them."""
-    from .export import load_source
     from .zoo import make_config
 
     path = Path(path)
     if not path.is_file():
         raise SplatzooError(f"--init-from {path}: no such file; pass a model file (.ply from `splatzoo export` or "
                             "another 2DGS/3DGS tool, or a .pt)")
-    net, _ = load_source(path)
+    net = open_model(path).model
     if model is not None and net.name != model:
         raise SplatzooError(f"--init-from {path} holds a {net.name!r} model but this run trains {model!r}; train "
                             f"--model {net.name} (or leave --model out to take the file's model)")
@@ -1314,14 +1329,13 @@ def _render_views(model, scene, folder: Path, *, split: str, video: bool, backen
 def _file_and_scene(path, data, backend: str, scene_options: dict | None):
     """(model on the backend's device, scene) of a model file and the dataset it is scored or rendered on."""
     from .data import load_scene
-    from .export import load_source
     from .rasterizers import select_backend
 
     if data is None:
         how = "splatzoo.load_ply" if Path(path).suffix.lower() == ".ply" else "splatzoo.load_model"
         raise SplatzooError(f"{path} is a model file, not a run folder: it records no dataset, so pass the one to use "
                             f"with --data DATA (in Python, {how} reads it)")
-    model, _ = load_source(path)
+    model = open_model(path).model
     scene = load_scene(data, **(scene_options or {}))
     check_fits_scene(model, scene, str(path))
     return model.to(select_backend(backend).torch_device()), scene

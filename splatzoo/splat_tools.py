@@ -1,7 +1,7 @@
-"""PlayCanvas splat-transform, the converter behind `splatzoo export --format spz | sog | compressed-ply`, and the
-reader of SPZ, SOG, compressed PLY, .splat and .ksplat files for every command that reads a model
-(`read_splat_file`). When it fails, a message gives its own Error line (never its Node.js stack) and names the
-user's file and its format.
+"""PlayCanvas splat-transform, the program behind the model file formats spz, sog and compressed-ply (written from our
+PLY by `convert_file`) and the reader of SPZ, SOG, compressed PLY, .splat and .ksplat files (`read_splat_file`), for
+splatzoo.model_files: this module knows files, not models. When it fails, a message gives its own Error line (never
+its Node.js stack) and names the user's file and its format.
 
 The CLI is a Node.js program, pinned in tools/splat-transform/package.json (installed with
 `npm ci --prefix tools/splat-transform`, which scripts/install.sh does). It is found, in order, at:
@@ -15,7 +15,6 @@ import os
 import re
 import shutil
 import subprocess
-import tempfile
 from pathlib import Path
 
 from .errors import SplatzooError
@@ -189,7 +188,7 @@ def _give_zero_rotations(ply: Path, zero) -> None:
 
 def read_splat_file(src, out) -> Path:
     """Convert the splat file `src` (SPZ, SOG, compressed PLY, .splat, .ksplat) to a plain PLY `out` for
-    splatzoo.export.load_ply. A file splat-transform cannot read is a SplatzooError that names `src`, its format and
+    splatzoo.model_ply.load_ply. A file splat-transform cannot read is a SplatzooError that names `src`, its format and
     splat-transform's own message; so are an SPZ header with absurd fractional bits and a file without splats."""
     src = Path(src)
     fmt = splat_format(src)
@@ -220,19 +219,3 @@ def read_splat_file(src, out) -> Path:
         if zero is not None and bool(zero.any()):
             _give_zero_rotations(Path(out), zero)
     return Path(out)
-
-
-def convert_ply(model, out, *, suffix: str, args=(), progress=None) -> Path:
-    """Write `model` as our standard PLY (splatzoo.export.save_ply) to a temporary file and convert it to `out`."""
-    from .export import save_ply
-
-    out = Path(out)
-    cli = find_splat_transform()  # before any work: a missing tool is the likeliest failure
-    with tempfile.TemporaryDirectory(prefix="splatzoo-export-") as folder:
-        ply = save_ply(model, Path(folder) / "model.ply")
-        if progress:
-            progress(f"converting {model.num_primitives} primitives with {cli}")
-        convert_file(ply, out, args=list(args), suffix=suffix, label=f"the {model.name} model")
-    if progress:
-        progress(f"wrote {out}")
-    return out

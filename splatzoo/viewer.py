@@ -302,32 +302,19 @@ def expand_runs(paths) -> list[Path]:
 
 
 def load_source(path: Path, backend: str = "auto") -> Source:
-    """A run folder as a viewer source: its trained model (or the last checkpoint of an interrupted run) on the
-    backend's device, and its training views when the dataset is still where it was. Anything missing or damaged
-    is an error here, before a server starts."""
-    from .rasterizers import select_backend
+    """A run folder or a model file as a viewer source: its model on the backend's device (a run's trained model, or
+    the last checkpoint of an interrupted run) and a run's training views when the dataset is still where it was.
+    Anything missing or damaged is an error here, before a server starts."""
+    from .model_files import open_model
     from .runs import Run
-    from .zoo import load_model
 
-    if Path(path).is_file():  # a model file (.ply from `splatzoo export` or another tool, .pt): no cameras
-        from .export import load_source as load_model_source
-
-        model, _ = load_model_source(path)
-        model = model.to(select_backend(backend).torch_device())
+    opened = open_model(path, backend=backend, latest=True)
+    model = opened.model
+    if opened.format != "run":  # a model file (.ply from `splatzoo export` or another tool, .pt): no cameras
         return Source(label=f"{Path(path).name} ({model.name})", fixed_model=model,
                       note="a model file: no training cameras (view its run, or orbit from the default view)")
     run = Run(path)
-    status = run.status
-    if status == "foreign":
-        raise SplatzooError(f"{path} is not a splatzoo run folder")
-    if status in ("new", "started"):
-        raise SplatzooError(f"{path} holds no model yet (no model.pt or checkpoint.pt); train it first")
-    note = ""
-    if status == "finished":
-        model = run.model(backend)
-    else:
-        model = load_model(run.checkpoint_path).to(select_backend(backend).torch_device())
-        note = "interrupted: showing its last checkpoint"
+    note = opened.note
     views, background = [], (0.0, 0.0, 0.0)
     try:
         scene = run.scene()

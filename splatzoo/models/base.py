@@ -66,6 +66,10 @@ class SplatModel(nn.Module):
     # names of buffers with one row per primitive (e.g. per-surfel wave counts): densification and loading edit
     # them with the parameters; they are not trained
     primitive_buffers: tuple[str, ...] = ()
+    # the PLY property prefix of a per-primitive parameter where it is not `<name>_` (splatzoo.model_ply: the
+    # parameter [N, k] is written as <prefix>0 .. <prefix>{k-1}); the 3DGS layout's own names (x y z, opacity, scale_,
+    # rot_, f_dc_, f_rest_) belong to the file format and need no entry here
+    ply_prefixes: dict[str, str] = {}
     # the mean absolute colour error of the recent training steps over the pixels the surfels cover (alpha > 1/2;
     # an exponential average over about 100 steps, colour units for images in [0,1]), set by the trainer before each
     # on_step; None outside training

@@ -166,6 +166,11 @@ class GaborModel(SurfelModel):
     learn_phase = True
     primitive_buffers = ("wave_counts", "wave_index", "folded_weights")  # present only for adaptive waves
     legacy_state_keys = ("folded_weight",)  # packed checkpoints of splatzoo 0.1.0 (_upgrade_single_fold)
+    # the PLY properties of the colours and waves (see SplatModel.ply_prefixes): gabor_weight_0, ...
+    ply_prefixes = {
+        "color_a": "gabor_color_a_", "color_b": "gabor_color_b_", "color_base": "gabor_color_base_",
+        "color_diff": "gabor_color_diff_", "wave_weights": "gabor_weight_", "wave_freqs": "gabor_freq_",
+        "wave_phases": "gabor_phase_"}
 
     def __init__(self, config: GaborConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
