@@ -19,7 +19,7 @@ these float32 attributes, one element per surfel:
                                              (clamped, decoded from sRGB), alpha the opacity (color=false: none)
 
 The third axis. A splatzoo surfel is a flat disc whose normal is the third column of its rotation. It is written
-with the third sigma exactly 0, as splatzoo's PLY export writes scale_2 = log 0 (`FLAT_LOG_SCALE` of the PLY layout,
+with the third sigma exactly 0, as splatzoo's PLY export writes scale_2 = log 0 (`splatzoo.model_ply.FLAT_LOG_SCALE`,
 whose docstring says how the splat viewers read it): the Gaussian's covariance R diag(s0, s1, 0)^2 R^T is the disc,
 every `ellipse` reader projects it as the flat ellipse it is, and the spec allows a scale of 0 (only negative ones are
 invalid). The surfels are flagged by a nested extension inside KHR_gaussian_splatting (and listed in extensionsUsed),
@@ -49,9 +49,9 @@ cameras, or from cameras around the model).
 Reading (`read_glb_splats`)
 ---------------------------
 A `2dgs` model. A file with the surfel flag and no node transform reads back as the surfels written, up to float32
-(quaternions come back normalised, opacity 0 or 1 as the logit -+SATURATED_LOGIT, as `load_ply` reads
+(quaternions come back normalised, opacity 0 or 1 as the logit -+SATURATED_LOGIT, as splatzoo.model_ply.load_ply reads
 them). Other files (a 3DGS model from another tool) are read the way load_ply reads a 3DGS PLY: each Gaussian becomes
-the surfel spanning its two largest axes (the PLY layout's `flatten_gaussians`), with a note on how many were far from
+the surfel spanning its two largest axes (`splatzoo.model_ply.flatten_gaussians`), with a note on how many were far from
 flat. Node transforms are applied (positions, covariances; SH coefficients turned by the transform's rotation), every
 splat primitive of the scene is read into one model, the integer encodings of the spec (normalised bytes and shorts)
 are decoded, and `lin_rec709_display` colours are converted to display colours (the DC term exactly). Everything is
@@ -75,6 +75,7 @@ import torch
 
 from .bake import BakeOptions
 from .errors import SplatzooError
+from .model_ply import FLAT_LOG_SCALE, SATURATED_LOGIT, flatten_gaussians
 
 EXTENSION = "KHR_gaussian_splatting"
 SURFEL_EXTENSION = "SPLATZOO_gaussian_splatting_surfel"
@@ -111,16 +112,6 @@ _MAX_NODE_DEPTH = 64
 _FIX = "Write it again (splatzoo's glb-splat export, or the tool that made it)"
 
 
-def _ply_layout():
-    """The module of splatzoo's PLY layout, whose surfel conventions this file shares (FLAT_LOG_SCALE,
-    SATURATED_LOGIT, flatten_gaussians): splatzoo.model_ply, or splatzoo.export in the versions before it."""
-    try:
-        from . import model_ply
-    except ImportError:
-        from . import export as model_ply
-    return model_ply
-
-
 # --- writing ---------------------------------------------------------------------------------------------------
 
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
@@ -146,8 +137,8 @@ def _surfel_arrays(model) -> dict[str, np.ndarray]:
     norm = np.linalg.norm(q, axis=1)
     zero = norm < ZERO_QUATERNION  # drawn as the identity (model_checks.repair_geometry)
     q = np.where(zero[:, None], np.array([1.0, 0.0, 0.0, 0.0]), q / np.where(zero, 1.0, norm)[:, None])
-    flat = _ply_layout().FLAT_LOG_SCALE  # the third scale of a surfel in splatzoo's PLY: log 0
-    scales = np.exp(np.concatenate([log_scales, np.full((len(means), 1), flat)], 1))
+    # the third sigma: 0, a surfel's thickness as splatzoo's PLY writes it (log 0)
+    scales = np.exp(np.concatenate([log_scales, np.full((len(means), 1), FLAT_LOG_SCALE)], 1))
     return {"POSITION": means, "ROTATION": q[:, [1, 2, 3, 0]], "SCALE": scales,
             "OPACITY": torch.sigmoid(logit).numpy(), "SH": sh}
 
@@ -690,7 +681,7 @@ def read_glb_splats(path):
     out_log, out_quats = log_scales[:, :2].copy(), quats.copy()
     rest = ~exact
     if rest.any():
-        flat_log, flat_quats, far = _ply_layout().flatten_gaussians(log_scales[rest], quats[rest])
+        flat_log, flat_quats, far = flatten_gaussians(log_scales[rest], quats[rest])
         out_log[rest], out_quats[rest] = flat_log, flat_quats
         foreign = np.concatenate([np.full(len(p.means), p.surfel is None) for p in parts])
         if (scales[foreign, 2] > 0).any():
@@ -700,8 +691,7 @@ def read_glb_splats(path):
                          "renderer's there")
     with np.errstate(divide="ignore"):
         logit = np.log(opacity) - np.log1p(-opacity)
-    saturated = _ply_layout().SATURATED_LOGIT  # opacity 0 or 1, read as a PLY's -inf / +inf logit is
-    logit = np.clip(logit, -saturated, saturated)
+    logit = np.clip(logit, -SATURATED_LOGIT, SATURATED_LOGIT)  # opacity 0 or 1: as a PLY's -inf / +inf logit
     model = create_model("2dgs", sh_degree=degree)
     model.replace_parameters({
         "means": torch.from_numpy(means.astype(np.float32)),

@@ -233,7 +233,7 @@ def test_another_tools_3dgs_glb_is_read_as_a_3dgs_ply_is(tmp_path):
     """Gaussians with three real axes: the same surfels as load_ply makes of the same Gaussians in a 3DGS PLY."""
     import plyfile
 
-    from splatzoo.export import load_ply
+    from splatzoo.model_ply import load_ply
 
     rng = np.random.default_rng(1)
     n = 40
