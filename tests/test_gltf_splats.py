@@ -345,7 +345,7 @@ def _mutate(edit):
     def make(good: bytes) -> bytes:
         doc, blob = glb_parts(good)
         new = edit(doc, blob)
-        return pack(doc, blob if new is None else new)
+        return pack(doc, new if isinstance(new, bytes) else blob)
     return make
 
 
@@ -365,7 +365,7 @@ def _set_values(semantic, index, values):
 
 
 def _drop(semantic):
-    return _mutate(lambda doc, blob: doc["meshes"][0]["primitives"][0]["attributes"].pop(semantic) and None)
+    return _mutate(lambda doc, blob: doc["meshes"][0]["primitives"][0]["attributes"].pop(semantic))
 
 
 def _acc(semantic, **fields):
@@ -393,10 +393,10 @@ HOSTILE = {
     "broken JSON": (lambda good: good[:20] + b"x" + good[21:], "JSON that cannot be parsed"),
     "deep JSON": (lambda good: _json_chunk(b"[" * 100000 + b"]" * 100000), "nested too deeply"),
     "JSON list": (lambda good: _json_chunk(b"[1, 2]  "), "holds a JSON list"),
-    "no asset": (_mutate(lambda doc, blob: doc.pop("asset") and None), "no asset.version"),
+    "no asset": (_mutate(lambda doc, blob: doc.pop("asset")), "no asset.version"),
     "required extension": (_mutate(lambda doc, blob: doc.update(extensionsRequired=["KHR_spz_gaussian_splats"])),
                            "requires the glTF extension"),
-    "no splats": (_mutate(lambda doc, blob: doc["meshes"][0]["primitives"][0].pop("extensions") and None),
+    "no splats": (_mutate(lambda doc, blob: doc["meshes"][0]["primitives"][0].pop("extensions")),
                   "holds no Gaussian splats"),
     "triangles": (_mutate(lambda doc, blob: doc["meshes"][0]["primitives"][0].update(mode=4)), "needs POINTS"),
     "no kernel": (_ext(kernel=None), "no kernel"),
@@ -408,12 +408,12 @@ HOSTILE = {
                     "unsigned byte normalized; the spec allows float"),
     "opacity as float normalized": (_acc(OPA, normalized=True), "float normalized"),
     "count mismatch": (_acc(OPA, count=3), "3 OPACITY values for 60 splats"),
-    "huge count": (_mutate(lambda doc, blob: [a.update(count=2 ** 40) for a in doc["accessors"]] and None),
+    "huge count": (_mutate(lambda doc, blob: [a.update(count=2 ** 40) for a in doc["accessors"]]),
                    "promises 1099511627776 POSITION values"),
     "count zero": (_acc("POSITION", count=0), "count 0"),
     "count string": (_acc("POSITION", count="60"), "count '60'"),
     "sparse": (_acc(ROT, sparse={"count": 1}), "sparse accessor"),
-    "no bufferView": (_mutate(lambda doc, blob: _attr(doc, SCALE).pop("bufferView") and None), "no bufferView"),
+    "no bufferView": (_mutate(lambda doc, blob: _attr(doc, SCALE).pop("bufferView")), "no bufferView"),
     "accessor out of range": (_mutate(lambda doc, blob: doc["meshes"][0]["primitives"][0]["attributes"].update(
         {SCALE: 999})), r"accessors\[999\]"),
     "view past buffer": (_mutate(lambda doc, blob: doc["bufferViews"][0].update(byteOffset=10 ** 8)),
@@ -432,7 +432,7 @@ HOSTILE = {
     "all transparent": (_set_values(OPA, slice(None), 0.0), "opacity below 1/255"),
     "partial SH degree": (_drop(f"{EXTENSION}:SH_DEGREE_1_COEF_2"), "SH degree 1 partially"),
     "degree 2 without 1": (_mutate(lambda doc, blob: [doc["meshes"][0]["primitives"][0]["attributes"].pop(
-        f"{EXTENSION}:SH_DEGREE_1_COEF_{c}") for c in range(3)] and None), "SH degree 2 without degree 1"),
+        f"{EXTENSION}:SH_DEGREE_1_COEF_{c}") for c in range(3)]), "SH degree 2 without degree 1"),
     "surfel with thickness": (_set_values(SCALE, 1, [0.1, 0.1, 0.05]), "third scale above 0"),
     "node loop": (_mutate(lambda doc, blob: doc.update(nodes=[{"mesh": 0, "children": [0]}])), "loops"),
     "node NaN matrix": (_mutate(lambda doc, blob: doc["nodes"][0].update(matrix=[float("nan")] * 16)),
