@@ -41,9 +41,10 @@ splat as 3DGS does, adding 0.3 px^2 to its screen covariance and keeping its opa
 its Gaussian cut at 2 sqrt(2) sigma and lowered to reach 0 there. Measured on the sweater protocol of BENCHMARKS.md's
 viewer section (2dgs, 3000 steps, 4000 surfels, 128 px, splatzoo 25.51 dB against the truth; 3 test views), its
 default draws the exact file at 32.10 dB from splatzoo's render, 0.40 dB under splatzoo against the truth, and the
-viewer=3dgs file at 29.44 dB, 1.07 dB under: the exact file is the better one for it. The Khronos glTF validator (2.0.0-dev.3.10) does not know the extension yet:
-besides saying so, it reports each `KHR_gaussian_splatting:` attribute name as an invalid attribute (it allows only
-glTF's own names and "_"-prefixed ones); it finds nothing else.
+viewer=3dgs file at 29.44 dB, 1.07 dB under: the exact file is the better one for it. The Khronos glTF validator
+(2.0.0-dev.3.10) does not know the extension yet: besides saying so, it reports each `KHR_gaussian_splatting:`
+attribute name as an invalid attribute (it allows only glTF's own names and "_"-prefixed ones); it finds nothing
+else.
 
 Richer members (gabor, beta, textured, neural-gabor, beta-gabor, plugins) have no place in these attributes: they are
 baked into plain surfels first by splatzoo.bake (`bake_model`, fitted to the model's own renders from the given
