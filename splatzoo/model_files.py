@@ -190,6 +190,18 @@ def _compressed(path: Path) -> bool:
     return path.name.lower().endswith(".ply") and compressed_ply(path)
 
 
+def _read_glb_splats(path):
+    from .gltf_splats import read_glb_splats
+
+    return read_glb_splats(path)
+
+
+def _write_glb_splats(model, path, *, progress=None, **options) -> Path:
+    from .gltf_splats import write_glb_splats
+
+    return write_glb_splats(model, path, progress=progress, **options)
+
+
 def _read_converted(source: Path):
     """The model of a splat file that splat-transform converts to a PLY for load_ply. Every message and note names
     `source`, never the temporary PLY (which is gone by the time anyone reads them)."""
@@ -255,6 +267,8 @@ for _fmt in (
                     suffixes=(".ksplat",)),
         ModelFormat("compressed-ply", "PlayCanvas / SuperSplat compressed PLY (splat-transform)", _read_converted,
                     _converted_writer(".compressed.ply", lambda: []), (".compressed.ply",), detect=_compressed),
+        ModelFormat("glb-splat", "glTF binary with KHR_gaussian_splatting splats (splatzoo.gltf_splats)",
+                    _read_glb_splats, _write_glb_splats, (".glb",), magic=b"glTF"),
         ModelFormat("ply", "the 3DGS/2DGS PLY with splatzoo's own properties (splatzoo.model_ply)", load_ply,
                     _write_ply, (".ply",), magic=b"ply"),
         ModelFormat("szp", "a model packed at its storage precision (splatzoo.packing)", _read_torch, _write_torch,
