@@ -408,8 +408,7 @@ def plain_model(means, quats, scales, opacities, colors, sh_rest=None, *, like=N
         "sh_rest": sh_rest.detach().float().cpu() if sh_rest is not None else torch.zeros(m, 0, 3),
     })
     if like is not None:
-        out.antialias = bool(getattr(like, "antialias", False))
-        out.background = getattr(like, "background", None)
+        out.set_render_settings(like.render_settings)
     return out
 
 

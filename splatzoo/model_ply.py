@@ -356,7 +356,7 @@ def load_ply(path):
     model = _empty_model(path, model_name, config)
     columns, notes = _columns_as_drawn(path, arr, ours, ignored)
     model.replace_parameters(_parameters(path, arr, columns, model, model_name, config))
-    model.antialias = "splatzoo antialias true" in comments
+    model.set_render_settings(antialias="splatzoo antialias true" in comments)
     check_draws(model, str(path), "export the model again from a run that trained (or pass another file)")
     notes += [f"{path}: {note}" for note in repair_geometry(model)]
     model.notes = notes

@@ -956,7 +956,6 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     if init_from:  # a fresh run from a model file's surfels (also when resumed before its first checkpoint)
         net = initial_model(init_from, model, dataclasses.asdict(model_config))
         check_fits_scene(net, scene, f"--init-from {init_from}")
-        net.antialias = cfg.antialias
         trainer = Trainer(scene, net, cfg, backend, device, comm=comm)
     elif state is None:  # a fresh run: its errors are its own, not a checkpoint's
         trainer = Trainer.start(scene, model, model_config, cfg, backend, device, comm=comm)

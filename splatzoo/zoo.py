@@ -302,8 +302,7 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
         raise fail(empty)
     _check_drawable(model, fail)
     model.name = name
-    model.antialias = antialias
-    model.background = background
+    model.set_render_settings(antialias=antialias, background=background)
     model.precision = precision
     return model
 

@@ -46,17 +46,28 @@ class Shedding:
     apply: Any
 
 
+@dataclasses.dataclass(frozen=True)
+class RenderSettings:
+    """How a model is rendered, whoever renders it: the model owns them (`SplatModel.render_settings`, changed only
+    through `set_render_settings`) and its checkpoint keeps them.
+
+    antialias: rendered with the pixel-footprint filter (RasterSettings.pixel_filter): trained so, and so every render
+      of it (evaluation, viewer, mesh) must be.
+    background: the colour [3] behind the surfels that the model was trained over (the photos' own backdrop), the
+      default of render(); None: black (a model trained over random colours, or made outside training).
+    """
+
+    antialias: bool = False
+    background: tuple[float, float, float] | None = None
+
+
 class SplatModel(nn.Module):
     """A primitive type. Subclasses define parameters in `__init__(config, num_primitives)` with first
     dimension num_primitives, initialise them in `init_from_points`, and implement `surfels(camera)`."""
 
     name: str = ""  # set from the registry spec when created through create_model
-    # rendered with the pixel-footprint filter (RasterSettings.pixel_filter): trained so, and so every render of it
-    # (evaluation, viewer, mesh) must be; kept in the checkpoint
-    antialias: bool = False
-    # the colour [3] behind the surfels that the model was trained over (the photos' own backdrop), the default of
-    # render(); None: black (a model trained over random colours, or made outside training). Kept in the checkpoint
-    background: tuple[float, float, float] | None = None
+    # how the model is rendered (RenderSettings); kept in the checkpoint
+    render_settings: RenderSettings = RenderSettings()
     # the precision the model is stored at (packing.PRECISIONS): a run trained with --store 8bit holds the values its
     # packed file loads back as, and its stored size is that file's. Kept in the checkpoint
     precision: str = "float32"
@@ -106,8 +117,8 @@ class SplatModel(nn.Module):
     # --- rendering ----------------------------------------------------------------------------------
     def render(self, camera: Camera, *, background=None, backend="auto", surfels: Surfels | None = None,
                image_only: bool = False) -> RenderOutput:
-        """The model seen from `camera`, rendered as it was trained: with its own raster settings (the pixel-footprint
-        filter, see `antialias`) over `background` (a colour [3] or a grey scalar; default: the model's own
+        """The model seen from `camera`, rendered as it was trained: with its own render settings (the pixel-footprint
+        filter, see RenderSettings) over `background` (a colour [3] or a grey scalar; default: the model's own
         `background`, black if it has none). Differentiable with respect to the parameters (not the camera).
 
         The camera is moved to the model's device and dtype. backend: "auto" or a name (splatzoo.rasterizers).
@@ -126,6 +137,43 @@ class SplatModel(nn.Module):
                 surfels = self.surfels(cam)
         return rasterize(surfels, cam, backend=backend, background=background, settings=self.raster_settings,
                          image_only=image_only)
+
+    def set_render_settings(self, settings: RenderSettings | None = None, **changes) -> "SplatModel":
+        """The one place the model's render settings change: to `settings` (say another model's, to render alike),
+        then `changes` (antialias=..., background=...) on top. Returns the model."""
+        new = dataclasses.replace(settings if settings is not None else self.render_settings, **changes)
+        if not isinstance(new.antialias, bool):
+            raise SplatzooError(f"render setting antialias must be true or false, got {new.antialias!r:.60}")
+        background = new.background
+        if background is not None:
+            try:
+                background = tuple(float(c) for c in background)
+            except (TypeError, ValueError):
+                background = None
+            if background is None or len(background) != 3 or not all(math.isfinite(c) for c in background):
+                raise SplatzooError(f"render setting background must be a colour of 3 finite numbers or None, got "
+                                    f"{new.background!r:.60}")
+        self.render_settings = RenderSettings(new.antialias, background)
+        return self
+
+    @property
+    def antialias(self) -> bool:
+        """Rendered with the pixel-footprint filter (RenderSettings.antialias); assigning it sets the render setting."""
+        return self.render_settings.antialias
+
+    @antialias.setter
+    def antialias(self, value: bool) -> None:
+        self.set_render_settings(antialias=value)
+
+    @property
+    def background(self) -> tuple[float, float, float] | None:
+        """The colour render() draws behind the surfels (RenderSettings.background); assigning it sets the render
+        setting."""
+        return self.render_settings.background
+
+    @background.setter
+    def background(self, value) -> None:
+        self.set_render_settings(background=value)
 
     # --- generic helpers ----------------------------------------------------------------------------
     @property

@@ -349,11 +349,12 @@ class Trainer:
             self.view_order = [int(i) for i in state["view_order"]]
         self.background = torch.tensor(scene.background, dtype=torch.float32, device=device)
         self.random_background = bool(getattr(scene, "random_background", False))
-        # the model renders over the photos' backdrop by default once trained (random colours teach no backdrop)
-        # (random colours through masks replace the photos' backdrop, which the model then renders over)
+        # the model's render settings are the run's: its filter, and the photos' backdrop it renders over by default
+        # once trained (random colours teach no backdrop; random colours through masks replace the photos' backdrop,
+        # which the model then renders over)
         masked = bool(getattr(scene, "masked_backdrop", False))
-        self.net.background = None if self.random_background and not masked else \
-            tuple(float(c) for c in scene.background)
+        self.net.set_render_settings(antialias=cfg.antialias, background=None if self.random_background and not masked
+                                     else tuple(float(c) for c in scene.background))
         self.view_index = {id(v): i for i, v in enumerate(scene.train)}
         self.densify_on = cfg.densify and hasattr(self.net, "logit_opacity")
         self.mcmc = self.densify_on and self.strategy == "mcmc"
@@ -380,7 +381,6 @@ class Trainer:
         check_start(scene, model, model_config, cfg, device)
         pts, cols = select_initial_points(scene.points, scene.colors, cfg.num_primitives, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
-        net.antialias = cfg.antialias
         return cls(scene, net, cfg, backend, device, comm=comm)
 
     @classmethod
