@@ -284,7 +284,7 @@ def stored_cost(choice: ModelChoice, count: int, store: str, like=None) -> int:
     model = create_model(choice.model, torch.rand(count, 3, generator=g), torch.full((count, 3), 0.5),
                          **choice.options)
     if like is not None:
-        model.antialias, model.background = like.antialias, like.background
+        model.set_render_settings(like.render_settings)
     return stored_bytes(model.shed_richness(), store)
 
 
@@ -502,13 +502,12 @@ def plot_convergence(run_dirs: dict[str, Run], path) -> None:
 
 @torch.no_grad()
 def random_color_surfels(model, camera, seed: int = 0):
-    """The model's surfels with one random colour each and no waves: shows primitive shapes."""
-    from .types import Surfels
+    """The model's surfels with one random colour each and no waves, as opaque as the model draws them: shows
+    primitive shapes."""
+    from .display import random_colors, recolored
 
     s = model.surfels(camera.to(next(model.parameters()).device, torch.float32))
-    g = torch.Generator().manual_seed(seed)
-    colors = torch.rand(s.num, 3, generator=g).to(s.means)
-    return Surfels.constant_color(s.means, s.quats, s.scales, s.opacities, colors)
+    return recolored(s, random_colors(s.num, seed))
 
 
 @torch.no_grad()

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .display import random_colors, recolored
 from .errors import SplatzooError
 from .types import Camera, Surfels
 
@@ -151,11 +152,6 @@ def surfel_wave_mask(surfels: Surfels) -> torch.Tensor:
     return used
 
 
-def _flat(surfels: Surfels, colors: torch.Tensor) -> Surfels:
-    return Surfels.constant_color(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
-                                  colors.to(surfels.means))
-
-
 def render_frame(model, cam: Camera, mode: str = "rgb", *, background=(0.0, 0.0, 0.0), backend: str = "auto",
                  max_waves: int | None = None) -> np.ndarray:
     """One viewer frame: uint8 [H,W,3] of `model` seen from `cam` in render `mode` (see MODES)."""
@@ -167,15 +163,14 @@ def render_frame(model, cam: Camera, mode: str = "rgb", *, background=(0.0, 0.0,
         surfels = model.surfels(cam)
         bg = background
         if mode == "surfels":
-            gen = torch.Generator().manual_seed(0)
-            surfels = _flat(surfels, torch.rand(surfels.num, 3, generator=gen))
+            surfels = recolored(surfels, random_colors(surfels.num))
             bg = (0.0, 0.0, 0.0)
         elif mode == "waves":
             k = max_waves or max(surfels.num_waves, 1)
-            surfels = _flat(surfels, _colormap(surfel_wave_counts(surfels) / k, "inferno"))
+            surfels = recolored(surfels, _colormap(surfel_wave_counts(surfels) / k, "inferno"))
             bg = (0.0, 0.0, 0.0)
         elif mode == "frequency":  # 0.5 cycles per pixel (Nyquist) in the middle of the map
-            surfels = _flat(surfels, _colormap(surfel_cycles_per_pixel(surfels, cam)))
+            surfels = recolored(surfels, _colormap(surfel_cycles_per_pixel(surfels, cam)))
             bg = (0.0, 0.0, 0.0)
         # colour and alpha only where that is all the mode shows (no depth, normal or distortion to compute)
         image_only = mode in ("rgb", "surfels", "waves", "frequency", "alpha")
