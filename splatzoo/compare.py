@@ -164,7 +164,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
                     diffs = diffs or ["code"]
                 else:  # same settings, older code: kept (it may be hours of training), and said so
                     other_code.append(c.label)
-                    if status == "finished":  # a resumed run's note comes from runs._prepare
+                    if status == "finished":  # a resumed run's note comes from the launch (run_launch)
                         print(f"note: {run.path} was trained by other splatzoo code (its model, trainer, rasterizer "
                               "or metrics sources changed since); its numbers are reused and marked in the report. "
                               "--overwrite retrains it with today's code", file=sys.stderr, flush=True)

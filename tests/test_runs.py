@@ -317,7 +317,7 @@ def test_killed_training_resumes_bit_identically(tiny_data, tmp_path, signum, un
 
 
 def test_checkpoints_by_time_and_stale_temp_files(tiny_data, tmp_path, monkeypatch):
-    import splatzoo.runs as runs
+    import splatzoo.run_launch as runs
 
     saves = []
     real = runs.torch_save
