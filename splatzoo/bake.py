@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -34,6 +35,7 @@ import torch
 from .errors import SplatzooError
 from .io import say_progress as _say
 from .geometry import eval_sh, quat_to_rotmat, rotmat_to_quat
+from .options import option_value
 from .types import Camera, Surfels
 
 SPLATS_PER_SURFEL = 8   # max_splats=None: this many baked splats per source surfel
@@ -116,26 +118,13 @@ def bake_options(**options) -> BakeOptions:
     """BakeOptions from keyword options (strings too, as the command line gives them), each checked: an unknown
     name or a value of the wrong kind is a SplatzooError that says what is known."""
     fields = {f.name: f for f in dataclasses.fields(BakeOptions)}
+    hints = typing.get_type_hints(BakeOptions)
     values = {}
     for name, value in options.items():
         if name not in fields:
             raise SplatzooError(f"unknown bake option {name!r}; the options are {', '.join(fields)}")
-        values[name] = _coerce(name, value, BakeOptions.__dataclass_fields__[name].default)
+        values[name] = option_value("bake", name, hints[name], value, fields[name].default)
     return BakeOptions(**values).validate()
-
-
-def _coerce(name: str, value, default):
-    if not isinstance(value, str):
-        return value
-    text = value.strip()
-    if name == "max_splats" and text.lower() in ("", "none", "default"):
-        return None
-    kind = str if isinstance(default, str) else float if isinstance(default, float) else int
-    try:
-        return kind(text)
-    except ValueError:
-        raise SplatzooError(f"bake option {name} must be {'a number' if kind is float else 'a whole number'}, got "
-                            f"{value!r}") from None
 
 
 # --- cameras ---------------------------------------------------------------------------------------------------

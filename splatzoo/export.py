@@ -28,11 +28,12 @@ import torch
 
 from .errors import PluginError, SplatzooError
 from .model_checks import check_in_view
-# model files, long imported from this module: the names stay importable here
+# model files, long imported from this module (the names stay importable here)
 from .model_files import load_source, open_model, write_model  # noqa: F401
 from .model_ply import (FLAT_LOG_SCALE, FORMAT_VERSION, RENDER_MODE_COMMENT, SATURATED_LOGIT,  # noqa: F401
                         flatten_gaussians, load_ply, model_columns, save_ply)
 from .ply import read_ply_vertices, write_ply_vertices  # noqa: F401
+from .options import model_spec, option_value
 from .registry import Registry
 from .runs import Run
 
@@ -102,9 +103,6 @@ def list_formats() -> list[str]:
     return EXPORTERS.names()
 
 
-_BOOLS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
-
-
 def export_options(spec: ExporterSpec, options: dict):
     """The format's options dataclass with `options` (strings from the command line, or values) applied."""
     cls = spec.options_class()
@@ -120,37 +118,8 @@ def export_options(spec: ExporterSpec, options: dict):
         raise SplatzooError(f"export format {spec.name!r} has no option(s) {', '.join(unknown)}; its options are: "
                             f"{', '.join(fields) or 'none'}" + closest(unknown[0], fields))
     hints = typing.get_type_hints(cls)
-    values = {}
-    for key, value in options.items():
-        typ = hints.get(key)
-        args = [a for a in typing.get_args(typ) if a is not type(None)]
-        if args and len(args) == 1 and type(None) in typing.get_args(typ):  # Optional[X]
-            if isinstance(value, str) and value.strip().lower() in ("none", "null", ""):
-                values[key] = None
-                continue
-            typ = args[0]
-        try:
-            if typ is bool:
-                if isinstance(value, bool):
-                    values[key] = value
-                elif isinstance(value, str) and value.strip().lower() in _BOOLS:
-                    values[key] = _BOOLS[value.strip().lower()]
-                else:
-                    raise ValueError
-            elif typ in (int, float):
-                if isinstance(value, bool):
-                    raise ValueError
-                converted = typ(value) if typ is float else int(str(value).strip())
-                if typ is float and not math.isfinite(converted):
-                    raise ValueError
-                values[key] = converted
-            elif typ is str:
-                values[key] = str(value)
-            else:
-                values[key] = value
-        except (TypeError, ValueError, OverflowError):
-            raise SplatzooError(f"export format {spec.name!r}: option {key} expects "
-                                f"{getattr(typ, '__name__', typ)}, got {value!r}") from None
+    values = {key: option_value(f"export format {spec.name!r}", key, hints.get(key), value, fields[key].default)
+              for key, value in options.items()}
     try:
         return cls(**values)
     except (TypeError, ValueError) as e:
@@ -180,8 +149,6 @@ def describe_format(spec: ExporterSpec) -> str:
 
 def parse_format(text: str) -> tuple[ExporterSpec, object]:
     """'baked:max_splats=16000' -> (the spec, its options dataclass); the model-option syntax."""
-    from .options import model_spec
-
     name, options = model_spec(text)
     spec = EXPORTERS.get(name)
     return spec, export_options(spec, options)
@@ -229,8 +196,6 @@ def _source_file(source: Path) -> Path | None:
 def export(source, out, format: str = "ply", *, progress=None, **options) -> Path:
     """Export the model of `source` (a run folder, a model .pt or .ply) to `out` in `format` (a name, or a name with
     options: 'baked:max_splats=16000'); keyword `options` add to those. Returns the written path."""
-    from .options import model_spec
-
     name, inline = model_spec(format)
     spec = EXPORTERS.get(name)
     opts = export_options(spec, {**inline, **options})

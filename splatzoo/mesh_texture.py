@@ -44,6 +44,7 @@ from .mesh import extract_mesh, mesh_parameters
 # the mesh files and their writers, used here and still imported from this module by scripts
 from .mesh_files import (TexturedMesh, check_obj_companions, glb_bytes, obj_companions,  # noqa: F401
                          png_bytes, write_glb, write_obj, write_textured_mesh)
+from .options import option_value
 from .types import Camera
 
 VIEW_SETS = ("train", "all")
@@ -137,33 +138,6 @@ class TexturedMeshOptions:
         return self
 
 
-def _coerce(name: str, value, hint):
-    """A CLI string ("1024", "true", "none") turned into the field's type; other values pass through."""
-    args = typing.get_args(hint) or (hint,)
-    if not isinstance(value, str):
-        if isinstance(value, float) and int in args and float not in args and value.is_integer():
-            return int(value)
-        return value
-    text = value.strip()
-    if type(None) in args and text.lower() in ("none", "null", "auto", ""):
-        return None
-    try:
-        if bool in args:
-            if text.lower() in ("1", "true", "yes", "on"):
-                return True
-            if text.lower() in ("0", "false", "no", "off"):
-                return False
-            raise ValueError(text)
-        if int in args:
-            return int(text)
-        if float in args:
-            return float(text)
-    except ValueError:
-        want = "true or false" if bool in args else "a whole number" if int in args else "a number"
-        raise SplatzooError(f"mesh texture option {name}={value!r} is not {want}") from None
-    return text
-
-
 def make_options(options: dict | TexturedMeshOptions | None = None, **more) -> TexturedMeshOptions:
     """TexturedMeshOptions from keyword values (strings from a command line are converted); unknown names are an
     error that lists the known ones."""
@@ -186,7 +160,8 @@ def make_options(options: dict | TexturedMeshOptions | None = None, **more) -> T
         close = difflib.get_close_matches(unknown[0], known, n=1)
         hint = f" (did you mean {close[0]}?)" if close else ""
         raise SplatzooError(f"unknown mesh texture option(s) {', '.join(unknown)}{hint}; known: {', '.join(known)}")
-    values = {**base, **{k: _coerce(k, v, hints[k]) for k, v in more.items()}}
+    defaults = {f.name: f.default for f in dataclasses.fields(TexturedMeshOptions)}
+    values = {**base, **{k: option_value("mesh texture", k, hints[k], v, defaults[k]) for k, v in more.items()}}
     return TexturedMeshOptions(**values).validate()
 
 

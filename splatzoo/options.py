@@ -1,10 +1,66 @@
-"""Model options on the command line, derived from each model's config dataclass (n_waves -> --n-waves)."""
+"""Options: a model's on the command line, derived from its config dataclass (n_waves -> --n-waves), the one-word
+syntax every command takes (gabor:n_waves=8, baked:max_splats=16000), and the one coercer that turns an option's
+value (a string from a command line or a header, or a typed value) into its field's type, for model configs, export
+formats, mesh texture and bake options alike."""
 from __future__ import annotations
 
 import dataclasses
+import math
+import types
 import typing
 
+from .errors import SplatzooError
 from .models.base import ModelOptionError
+
+BOOL_WORDS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
+NONE_WORDS = ("none", "null", "auto", "default", "")  # an optional field's "unset", as a word
+
+
+def option_value(what: str, key: str, typ, value, default=None, *, error=SplatzooError):
+    """The option `key` of `what` ("model 'gabor'", "export format 'spz'", "mesh texture", "bake") converted to its
+    field's type `typ`; anything it cannot be is an `error` saying "{what}: option {key} expects {type}, got {value}".
+    Options often arrive as strings (command line, PLY headers), and bool("False") is True, so bools are parsed by
+    their words rather than cast; a count never takes a fraction or a bool; a float must be finite (but for a field's
+    own non-finite `default`, which a config hands back through its dict); an optional field (X | None) takes None
+    or one of NONE_WORDS for "unset". Other types pass through: the options class checks them."""
+    def bad(expected: str):
+        return error(f"{what}: option {key} expects {expected}, got {value!r}")
+
+    if typing.get_origin(typ) in (typing.Union, types.UnionType) and type(None) in typing.get_args(typ):
+        inner = [t for t in typing.get_args(typ) if t is not type(None)]
+        if value is None or (isinstance(value, str) and value.strip().lower() in NONE_WORDS):
+            return None
+        if len(inner) != 1:
+            return value
+        typ = inner[0]
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        if type(value) is int and value in (0, 1):
+            return bool(value)
+        if isinstance(value, str) and value.strip().lower() in BOOL_WORDS:
+            return BOOL_WORDS[value.strip().lower()]
+        raise bad("bool (true/false, yes/no, on/off or 1/0)")
+    if typ in (int, float):
+        if isinstance(value, bool):  # a bool is an int to Python, but never a count or a rate
+            raise bad(typ.__name__)
+        try:
+            if typ is float:
+                converted = float(value)
+            elif isinstance(value, float):
+                if not value.is_integer():
+                    raise ValueError  # int() would silently drop the fraction
+                converted = int(value)
+            else:
+                converted = int(value)
+        except (TypeError, ValueError, OverflowError):
+            raise bad(typ.__name__) from None
+        if typ is float and not math.isfinite(converted) and not (isinstance(value, float) and value == default):
+            raise bad("a finite float")
+        return converted
+    if typ is str:
+        return str(value)
+    return value
 
 
 def option_fields(config_cls) -> list[tuple[str, type, object, str]]:
@@ -22,8 +78,6 @@ def model_spec(text: str) -> tuple[str, dict]:
     'gabor' or 'gabor:n_waves=8,prune_waves=0.01' (or n-waves=8) -> ('gabor', {'n_waves': '8', ...}).
     Values stay strings: make_config converts and checks them. A key given twice (hidden=1,hidden=2, or n_waves and
     n-waves) is an error: no value is silently dropped. Export formats (ply:viewer=3dgs) use the same syntax."""
-    from .errors import SplatzooError
-
     name, _, rest = text.partition(":")
     options, given = {}, {}
     for item in filter(None, rest.split(",")):
@@ -57,9 +111,9 @@ def parse_model_args(model: str, args: list[str], positionals: list | None = Non
     given twice (--n-waves 2 --n-waves 4, --flag --no-flag) is an error. A word that is no option nor an option's
     value goes to `positionals` when it is given (a command's own argument typed after the model options), else it
     is an error."""
-    from .zoo import get_model_spec
+    from .registry import MODELS
 
-    spec = get_model_spec(model)
+    spec = MODELS.get(model)
     fields = {flag: (typ, name) for (flag, typ, _, _), name in
               zip(option_fields(spec.config_cls), [f.name for f in dataclasses.fields(spec.config_cls)])}
     known = ", ".join(fields) or "none"
@@ -108,9 +162,9 @@ def parse_model_args(model: str, args: list[str], positionals: list | None = Non
 
 
 def describe_options(model: str) -> str:
-    from .zoo import get_model_spec
+    from .registry import MODELS
 
-    spec = get_model_spec(model)
+    spec = MODELS.get(model)
     rows = [f"  {flag} {typ.__name__.upper()}  {hlp} (default {default})"
             for flag, typ, default, hlp in option_fields(spec.config_cls)]
     return "\n".join(rows) if rows else "  (no options)"

@@ -14,11 +14,11 @@ from .errors import SplatzooError
 from .io import atomic_path, read_torch, torch_save
 from .model_checks import drawing_problem, repair_geometry
 from .models.base import ModelOptionError, SplatModel
+from .options import option_value
 from .packing import PRECISIONS
 from .registry import MODELS, ModelSpec
 
 _MODEL_FILE_FIX = "pass a .pt or .szp file written by splatzoo (run/model.pt, run/model.szp or run/checkpoint.pt)"
-_BOOLS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
 
 
 def list_models() -> list[str]:
@@ -28,43 +28,6 @@ def list_models() -> list[str]:
 
 def get_model_spec(name: str) -> ModelSpec:
     return MODELS.get(name)
-
-
-def _option_value(model: str, key: str, typ, value, default):
-    """One option converted to its field's type. Options often arrive as strings (command line, PLY headers), and
-    bool("False") is True, so bools are parsed by their words rather than cast."""
-    def bad(expected: str):
-        return ModelOptionError(f"model {model!r}: option {key} expects {expected}, got {value!r}")
-
-    if typ is bool:
-        if isinstance(value, bool):
-            return value
-        if type(value) is int and value in (0, 1):
-            return bool(value)
-        if isinstance(value, str) and value.strip().lower() in _BOOLS:
-            return _BOOLS[value.strip().lower()]
-        raise bad("bool (true/false, yes/no, on/off or 1/0)")
-    if typ in (int, float):
-        if isinstance(value, bool):  # a bool is an int to Python, but never a count or a rate
-            raise bad(typ.__name__)
-        try:
-            if typ is float:
-                converted = float(value)
-            elif isinstance(value, float):
-                if not value.is_integer():
-                    raise ValueError  # int() would silently drop the fraction
-                converted = int(value)
-            else:
-                converted = int(value)
-        except (TypeError, ValueError, OverflowError):
-            raise bad(typ.__name__) from None
-        # a model's own non-finite default (say max_scale = inf) passes through create_model(**asdict(config))
-        if typ is float and not math.isfinite(converted) and not (isinstance(value, float) and value == default):
-            raise bad("a finite float")
-        return converted
-    if typ is str:
-        return str(value)
-    return value  # Optional[...] and other types: the config class checks them
 
 
 def make_config(name: str, **options):
@@ -80,7 +43,7 @@ def make_config(name: str, **options):
     for k, v in options.items():
         if v is None:
             continue
-        values[k] = _option_value(name, k, hints.get(k), v, known[k].default)
+        values[k] = option_value(f"model {name!r}", k, hints.get(k), v, known[k].default, error=ModelOptionError)
     return spec.config_cls(**values)
 
 
