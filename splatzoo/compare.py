@@ -10,7 +10,8 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
-from .io import atomic_path, write_json, write_text
+from .figures import metric, pyplot, save_figure
+from .io import write_json, write_text
 from .runs import Run, differences, evaluate_run, made_by_other_code, make_record, train
 from .training import TrainConfig
 
@@ -102,15 +103,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     (budget_count), in out/runs/<label>@<count>; rate.png and the report's rate table plot PSNR, LPIPS and FPS
     against stored bytes. `store`: the precision every model is stored (and fine-tuned) at (packing.PRECISIONS)."""
     from .data import load_scene
-    from .zoo import make_config
 
-    if not models:
-        raise SplatzooError("name at least one model to compare, e.g. `splatzoo compare gabor 2dgs`")
-    choices = [m if isinstance(m, ModelChoice) else parse_model_arg(m) for m in models]
-    labels = [c.label for c in choices]
-    if len(set(labels)) != len(labels) or len({_safe(k) for k in labels}) != len(labels):
-        raise SplatzooError(f"each model may appear once; got {', '.join(labels)}")
-    model_configs = {c.label: make_config(c.model, **c.options) for c in choices}  # a typo fails before training
+    choices, model_configs = _checked_choices(models)
     if strategy != "auto" and not densify:
         raise SplatzooError(f"--strategy {strategy} chooses how densification grows the count; add --densify, or "
                             "leave --strategy out for the fixed-count protocol")
@@ -132,38 +126,85 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         raise SplatzooError("--equal-bytes is the single budget of the first model's size, one point of what "
                             "--budgets draws: give one of them")
     sizes = parse_budgets(budgets) if budgets else []
-    # a budget too small for a model is refused before anything trains (or is retrained with --overwrite): a fraction
-    # against the first model's size at the start, which a fixed-count run keeps (a shedding one only loses)
-    start = stored_cost(choices[0], num_primitives or scene.points.shape[0], store) if sizes else 0
+    _refuse_small_budgets(choices, sizes, num_primitives or scene.points.shape[0], store)
+    runner = _Runs(scene, scene_options, model_configs, base_cfg, overwrite=overwrite, backend=backend,
+                   progress=progress, folders={c.label: Run(out / "runs" / _safe(c.label)) for c in choices})
+    for run in runner.folders.values():
+        if run.status == "foreign":
+            raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
+    runs, counts = _train_all(runner, choices, num_primitives, equal_bytes=equal_bytes, budgets=bool(sizes))
+    rate = rate_curves(choices, sizes, scene, out, store, runs, runner.folders, runner.plan,
+                       runner.train_or_reuse) if sizes else []
+    settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
+                "num_primitives": num_primitives, "densify": densify, "strategy": strategy, "seed": seed,
+                "backend": runs[choices[0].label].get("backend", backend), "scene_options": scene_options,
+                "models": [c.label for c in choices], "equal_bytes": equal_bytes, "antialias": antialias,
+                "random_downscale": random_downscale, "primitives": counts, "trained_by_other_code": runner.other_code,
+                "train_views": len(scene.train), "test_views": len(scene.test), "store": store,
+                "budgets": [text for text, _, _ in sizes]}
+    return _write_report(out, scene, {"runs": runs, "settings": settings}, rate, runner.folders)
+
+
+def _checked_choices(models) -> tuple[list[ModelChoice], dict]:
+    """(the models as ModelChoice, label -> its config): each label once, every option checked before training."""
+    from .zoo import make_config
+
+    if not models:
+        raise SplatzooError("name at least one model to compare, e.g. `splatzoo compare gabor 2dgs`")
+    choices = [m if isinstance(m, ModelChoice) else parse_model_arg(m) for m in models]
+    labels = [c.label for c in choices]
+    if len(set(labels)) != len(labels) or len({_safe(k) for k in labels}) != len(labels):
+        raise SplatzooError(f"each model may appear once; got {', '.join(labels)}")
+    return choices, {c.label: make_config(c.model, **c.options) for c in choices}  # a typo fails before training
+
+
+def _refuse_small_budgets(choices: list[ModelChoice], sizes, count: int, store: str) -> None:
+    """A budget too small for a model is refused before anything trains (or is retrained with --overwrite): a
+    fraction against the first model's size at the start (`count` primitives), which a fixed-count run keeps (a
+    shedding one only loses)."""
+    start = stored_cost(choices[0], count, store) if sizes else 0
     for text, kind, value in sizes:
         target = int(value * start) if kind == "fraction" else int(value)
         for c in choices:
             if budget_count(c, target, store) < 1:
                 raise too_small(c, text, target, store)
-    run_dirs = {c.label: Run(out / "runs" / _safe(c.label)) for c in choices}
-    for run in run_dirs.values():
-        if run.status == "foreign":
-            raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
 
-    def plan(c: ModelChoice, count: int, run: Run | None = None, max_bytes: int | None = None):
+
+@dataclass
+class _Runs:
+    """The runs of one comparison: each model's folder (`folders`, by label), how a run is planned against what its
+    folder holds and then trained or reused, and the labels whose reused runs other code trained (`other_code`)."""
+
+    scene: object
+    scene_options: dict
+    model_configs: dict
+    base_cfg: TrainConfig
+    overwrite: bool
+    backend: str
+    progress: bool
+    folders: dict
+    other_code: list = field(default_factory=list)
+
+    def plan(self, c: ModelChoice, count: int, run: Run | None = None, max_bytes: int | None = None):
         """The run of `c` with `count` primitives (in `run`, default the model's own folder; within `max_bytes`
         stored): new, finished (reuse), started or interrupted (resume), or overwrite; a run made with other
         settings is an error without `overwrite`, never a row of old numbers."""
-        run, cfg = run or run_dirs[c.label], replace(base_cfg, num_primitives=count, max_bytes=max_bytes)
+        run, cfg = run or self.folders[c.label], replace(self.base_cfg, num_primitives=count, max_bytes=max_bytes)
         status = run.status
         if status == "foreign":
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
         if status != "new":
             record = run.record()
-            diffs = differences(record, make_record(scene, scene_options, c.model, model_configs[c.label], cfg))
-            if diffs and not overwrite:
+            diffs = differences(record, make_record(self.scene, self.scene_options, c.model,
+                                                    self.model_configs[c.label], cfg))
+            if diffs and not self.overwrite:
                 raise SplatzooError(f"{run.path} was trained with other settings ({'; '.join(diffs)}); pass "
                                     "--overwrite to retrain it, or choose another --out")
             if made_by_other_code(record) and status != "started":
-                if overwrite:
+                if self.overwrite:
                     diffs = diffs or ["code"]
                 else:  # same settings, older code: kept (it may be hours of training), and said so
-                    other_code.append(c.label)
+                    self.other_code.append(c.label)
                     if status == "finished":  # a resumed run's note comes from the launch (run_launch)
                         print(f"note: {run.path} was trained by other splatzoo code (its model, trainer, rasterizer "
                               "or metrics sources changed since); its numbers are reused and marked in the report. "
@@ -171,36 +212,37 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             status = "overwrite" if diffs else status
         return cfg, status
 
-    def train_or_reuse(c: ModelChoice, cfg: TrainConfig, status: str, run: Run | None = None) -> dict:
-        run = run or run_dirs[c.label]
+    def train_or_reuse(self, c: ModelChoice, cfg: TrainConfig, status: str, run: Run | None = None) -> dict:
+        run = run or self.folders[c.label]
         if status == "finished":  # trained earlier with these settings: reuse
-            return run.metrics() or evaluate_run(run.path, backend=backend)
-        return train(scene, c.model, c.options, cfg, run.path, resume=status in ("started", "interrupted"),
-                     overwrite=status == "overwrite", progress=progress, scene_options=scene_options,
+            return run.metrics() or evaluate_run(run.path, backend=self.backend)
+        return train(self.scene, c.model, c.options, cfg, run.path, resume=status in ("started", "interrupted"),
+                     overwrite=status == "overwrite", progress=self.progress, scene_options=self.scene_options,
                      command="splatzoo compare").metrics
 
-    # equal count: decide every run before training any. Equal bytes: the first model sets the budget, then the
-    # others are decided.
-    phases = [choices[:1], choices[1:]] if equal_bytes else [choices[:1]] if sizes else [choices]
-    counts, runs, budget, other_code = {}, {}, None, []
+
+def _train_all(runner: _Runs, choices: list[ModelChoice], num_primitives, *, equal_bytes: bool,
+               budgets: bool) -> tuple[dict, dict]:
+    """(label -> metrics, label -> primitive count) of every model at its count: with equal counts every run is
+    decided before any trains; with equal bytes the first model sets the budget, then the others are decided; with
+    budgets only the first model trains here (rate_curves does the rest)."""
+    phases = [choices[:1], choices[1:]] if equal_bytes else [choices[:1]] if budgets else [choices]
+    counts, runs, budget = {}, {}, None
     for phase in phases:
         for c in phase:
             counts[c.label] = num_primitives if budget is None else max(1, budget // bytes_per_primitive(c))
-        planned = {c.label: plan(c, counts[c.label]) for c in phase}
+        planned = {c.label: runner.plan(c, counts[c.label]) for c in phase}
         for c in phase:
-            runs[c.label] = train_or_reuse(c, *planned[c.label])
+            runs[c.label] = runner.train_or_reuse(c, *planned[c.label])
         if equal_bytes:
             budget = int(runs[choices[0].label]["size_bytes"])
-    rate = rate_curves(choices, sizes, scene, out, store, runs, run_dirs, plan, train_or_reuse) if sizes else []
-    settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
-                "num_primitives": num_primitives, "densify": densify, "strategy": strategy, "seed": seed,
-                "backend": runs[choices[0].label].get("backend", backend), "scene_options": scene_options,
-                "models": labels, "equal_bytes": equal_bytes, "antialias": antialias,
-                "random_downscale": random_downscale, "primitives": counts, "trained_by_other_code": other_code,
-                "train_views": len(scene.train), "test_views": len(scene.test), "store": store,
-                "budgets": [text for text, _, _ in sizes]}
-    report = {"runs": runs, "settings": settings}
-    shown = run_dirs
+    return runs, counts
+
+
+def _write_report(out: Path, scene, report: dict, rate: list, folders: dict) -> dict:
+    """compare.json, report.md and the pictures (rate.png with budgets, convergence.png, compare.png) of `report`
+    (its runs and settings; `rate` added when there is one)."""
+    settings, shown = report["settings"], folders
     if rate:
         report["rate"] = rate
         largest = max(r["budget_bytes"] for r in rate)  # the pictures show every model at the largest budget
@@ -208,7 +250,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     write_json(out / "compare.json", report)
     write_text(out / "report.md", report_markdown(report))
     if rate:
-        plot_rate(rate, out / "rate.png", title=f"{scene.name}, stored as {store}")
+        plot_rate(rate, out / "rate.png", title=f"{scene.name}, stored as {settings['store']}")
     plot_convergence(shown, out / "convergence.png")
     plot_comparison(scene, shown, out / "compare.png", backend=settings["backend"])
     return report
@@ -337,15 +379,10 @@ def _densification(settings: dict) -> str:
     return f"densification on ({'each model its own strategy' if strategy == 'auto' else f'strategy {strategy}'})"
 
 
-def _num(v) -> float:
-    """A metric from JSON as a float: null (a non-finite value, e.g. the PSNR of a perfect render) is NaN."""
-    return float("nan") if v is None else float(v)
-
-
 def report_markdown(report: dict) -> str:
     runs, s = report["runs"], report["settings"]
     labels = list(runs)
-    get = lambda k, key: _num(runs[k].get(key))  # noqa: E731
+    get = lambda k, key: metric(runs[k].get(key))  # noqa: E731
 
     def best_of(key, better):
         finite = [k for k in labels if math.isfinite(get(k, key))]
@@ -413,16 +450,16 @@ def rate_markdown(rate: list[dict], store: str) -> list[str]:
              "| budget | " + " | ".join(models) + " |", "|---" * (len(models) + 1) + "|"]
     for b in budgets:
         row = [at[(b, m)] for m in models]
-        best = max(range(len(row)), key=lambda i: _num(row[i].get("psnr")) if math.isfinite(_num(row[i].get("psnr")))
+        best = max(range(len(row)), key=lambda i: metric(row[i].get("psnr")) if math.isfinite(metric(row[i].get("psnr")))
                    else -math.inf)
         cells = []
         for i, r in enumerate(row):
-            psnr = f"{_num(r.get('psnr')):.2f}"
-            cells.append(f"{f'**{psnr}**' if i == best else psnr} / {_num(r.get('lpips')):.4f}, "
+            psnr = f"{metric(r.get('psnr')):.2f}"
+            cells.append(f"{f'**{psnr}**' if i == best else psnr} / {metric(r.get('lpips')):.4f}, "
                          f"{r['stored_bytes'] / 1e3:.1f} kB, {r['num_primitives']}")
         lines.append(f"| {b} ({row[0]['budget_bytes'] / 1e3:.1f} kB) | " + " | ".join(cells) + " |")
     if store != "float32":
-        losses = [_num(r.get("float32_psnr")) - _num(r.get("psnr")) for r in rate]
+        losses = [metric(r.get("float32_psnr")) - metric(r.get("psnr")) for r in rate]
         losses = [x for x in losses if math.isfinite(x)]
         if losses:
             lines += ["", f"Storage at {store} cost {max(losses):+.2f} dB at most (mean {np.mean(losses):+.2f}) "
@@ -432,13 +469,13 @@ def rate_markdown(rate: list[dict], store: str) -> list[str]:
 
 def plot_rate(rate: list[dict], path, *, title: str = "") -> None:
     """rate.png: PSNR, LPIPS and FPS against stored bytes, one curve per model."""
-    plt = _figure()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     for model in dict.fromkeys(r["model"] for r in rate):
         pts = sorted((r for r in rate if r["model"] == model), key=lambda r: r["stored_bytes"])
         kb = [r["stored_bytes"] / 1e3 for r in pts]
         for ax, key in zip(axes, ("psnr", "lpips", "fps")):
-            ax.plot(kb, [_num(r.get(key)) for r in pts], marker="o", ms=4, label=model)
+            ax.plot(kb, [metric(r.get(key)) for r in pts], marker="o", ms=4, label=model)
     from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
 
     for ax, (label, better) in zip(axes, (("PSNR (dB)", "higher"), ("LPIPS", "lower"), ("FPS", "higher"))):
@@ -450,7 +487,7 @@ def plot_rate(rate: list[dict], path, *, title: str = "") -> None:
         ax.legend(fontsize=8)
     if title:
         fig.suptitle(title, y=1.03)
-    _save_figure(fig, Path(path))
+    save_figure(fig, Path(path))
     plt.close(fig)
 
 
@@ -466,22 +503,8 @@ def _read_log(run: Run) -> tuple[list, list, list, list]:
     return it, loss, tit, tpsnr
 
 
-def _figure():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save_figure(fig, path: Path) -> None:
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-
-
 def plot_convergence(run_dirs: dict[str, Run], path) -> None:
-    plt = _figure()
+    plt = pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     for label, d in run_dirs.items():
         it, loss, tit, tpsnr = _read_log(d)
@@ -496,7 +519,7 @@ def plot_convergence(run_dirs: dict[str, Run], path) -> None:
     for ax in (a, b):
         ax.grid(alpha=0.3)
         ax.legend()
-    _save_figure(fig, Path(path))
+    save_figure(fig, Path(path))
     plt.close(fig)
 
 
@@ -516,7 +539,7 @@ def plot_comparison(scene, run_dirs: dict[str, Run], path, *, backend: str = "au
     views = views[:: max(1, len(views) // max_views)][:max_views]
     models = {label: run.model() for label, run in run_dirs.items()}
     cols = 1 + 2 * len(models)
-    plt = _figure()
+    plt = pyplot()
     fig, axes = plt.subplots(len(views), cols, figsize=(2.4 * cols, 2.5 * len(views)), squeeze=False)
     for r, v in enumerate(views):
         cells = [("ground truth", v.image_float())]
@@ -534,5 +557,5 @@ def plot_comparison(scene, run_dirs: dict[str, Run], path, *, backend: str = "au
             if r == 0:
                 ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    _save_figure(fig, Path(path))
+    save_figure(fig, Path(path))
     plt.close(fig)

@@ -11,8 +11,9 @@ import json
 import math
 from pathlib import Path
 
-from .compare import ModelChoice, QuickPreset, _figure, _num, _save_figure, builtin_scene, compare
+from .compare import ModelChoice, QuickPreset, builtin_scene, compare
 from .errors import SplatzooError
+from .figures import metric, pyplot, save_figure
 from .io import say_progress, write_json, write_text
 
 
@@ -116,9 +117,9 @@ def sweep(data=None, out="runs/sweep", *, model: str = "gabor", n_waves=(0, 1, 2
         for k, choice in choices.items():
             label = choice.label
             r = report["runs"][label]
-            fps = _num(r.get("fps"))
+            fps = metric(r.get("fps"))
             points.append({"n_waves": k, "num_primitives": n, "model": "2dgs" if k == 0 else model, "label": label,
-                           "psnr": _num(r.get("psnr")), "ssim": _num(r.get("ssim")), "lpips": _num(r.get("lpips")),
+                           "psnr": metric(r.get("psnr")), "ssim": metric(r.get("ssim")), "lpips": metric(r.get("lpips")),
                            "fps": fps,
                            "render_ms": 1000.0 / fps if fps and math.isfinite(fps) else float("nan"),
                            "size_bytes": r["size_bytes"], "train_seconds": r.get("train_seconds"),
@@ -182,7 +183,7 @@ def sweep_markdown(result: dict) -> str:
 
 
 def plot_pareto(points: list[dict], path, title: str = "") -> None:
-    plt = _figure()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     waves = sorted({p["n_waves"] for p in points})
     counts = sorted({p["num_primitives"] for p in points})
@@ -208,7 +209,7 @@ def plot_pareto(points: list[dict], path, title: str = "") -> None:
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    _save_figure(fig, Path(path))
+    save_figure(fig, Path(path))
     plt.close(fig)
 
 
