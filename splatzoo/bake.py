@@ -463,12 +463,33 @@ def bake_model(model, cameras: list[Camera], options: BakeOptions | None = None,
         return model, {"bake_db": math.inf, "splats": n_source, "source_surfels": n_source, "passed_through": True}
     t0 = time.perf_counter()
     from .rasterizers import select_backend
-    from .training.losses import photometric_loss
 
     backend = options.backend
     device = p.device if backend == "auto" else select_backend(backend).torch_device()
     model = model.to(device)
     budget = options.max_splats or SPLATS_PER_SURFEL * n_source
+    fit_cams, eval_cams = _bake_cameras(model, cameras, options, device)
+
+    means, quats, scales, opac, colors, sh_rest, _ = split_surfels(model, fit_cams, budget, options.max_per_surfel)
+    baked = plain_model(means, quats, scales, opac, colors, sh_rest, like=model).to(device)
+    baked.name = "2dgs"
+    say(f"bake: {n_source} surfels split into {baked.num_primitives} splats (at most {budget})")
+    start_db = bake_error(baked, model, eval_cams, backend=backend)
+    _fit(baked, _source_renders(model, fit_cams, backend), fit_cams, len(cameras), options, say)
+    bake_db = bake_error(baked, model, eval_cams, backend=backend)
+    report = {"bake_db": bake_db, "start_db": start_db, "plain_db": plain_error(model, eval_cams, backend=backend),
+              "splats": baked.num_primitives, "max_splats": budget, "source_surfels": n_source,
+              "source_model": getattr(model, "name", ""), "fit_views": len(fit_cams), "eval_views": len(eval_cams),
+              "seconds": time.perf_counter() - t0, "options": dataclasses.asdict(options)}
+    say(f"bake error: {bake_db:.2f} dB PSNR against the {report['source_model'] or 'source'} render on "
+        f"{len(eval_cams)} held-out views (split alone {start_db:.2f} dB, waves dropped {report['plain_db']:.2f} dB), "
+        f"{baked.num_primitives} splats")
+    return baked, report
+
+
+def _bake_cameras(model, cameras: list[Camera], options: BakeOptions, device) -> tuple[list[Camera], list[Camera]]:
+    """(fitting views, held-out views) on `device`: the given cameras (scaled by options.scale) and jittered copies
+    up to options.views (or every n-th of them down to it), and options.eval_views jittered views never fitted."""
     fit_cams = [c.detach().to("cpu", torch.float64) for c in cameras]
     if options.scale != 1:
         fit_cams = [c.scaled(options.scale) for c in fit_cams]
@@ -480,35 +501,39 @@ def bake_model(model, cameras: list[Camera], options: BakeOptions | None = None,
         fit_cams = fit_cams[:: max(1, len(fit_cams) // options.views)][:options.views]
     eval_cams = jittered_cameras(fit_cams[:len(cameras)], options.eval_views, options.jitter, center,
                                  options.seed * 2 + 2, prefix="held_out")
-    fit_cams = [c.to(device, torch.float32) for c in fit_cams]
-    eval_cams = [c.to(device, torch.float32) for c in eval_cams]
+    return [c.to(device, torch.float32) for c in fit_cams], [c.to(device, torch.float32) for c in eval_cams]
 
-    means, quats, scales, opac, colors, sh_rest, _ = split_surfels(model, fit_cams, budget, options.max_per_surfel)
-    baked = plain_model(means, quats, scales, opac, colors, sh_rest, like=model).to(device)
-    baked.name = "2dgs"
-    say(f"bake: {n_source} surfels split into {baked.num_primitives} splats (at most {budget})")
-    start_db = bake_error(baked, model, eval_cams, backend=backend)
 
-    # the targets: the source's renders (colour and alpha), kept when they fit in memory
-    pixels = sum(c.width * c.height for c in fit_cams)
+def _source_renders(model, cameras: list[Camera], backend: str):
+    """target(i): the source's render (colour, alpha) from cameras[i], the fit's target; all kept in memory when
+    they fit in TARGET_CACHE_BYTES (rendered here, in order), else rendered when asked for."""
+    pixels = sum(c.width * c.height for c in cameras)
     cache = [] if pixels * 4 * 4 <= TARGET_CACHE_BYTES else None
 
     @torch.no_grad()
     def target(i):
         if cache is not None and i < len(cache):
             return cache[i]
-        out = model.render(fit_cams[i], backend=backend, image_only=True)
+        out = model.render(cameras[i], backend=backend, image_only=True)
         t = (out.rgb.detach(), out.alpha.detach())
         if cache is not None:
             cache.append(t)
         return t
 
     if cache is not None:
-        for i in range(len(fit_cams)):
+        for i in range(len(cameras)):
             target(i)
-    from .data.scene import camera_extent
+    return target
 
-    extent = camera_extent([c.to("cpu", torch.float64) for c in fit_cams[:len(cameras)] or fit_cams])
+
+def _fit(baked, target, fit_cams: list[Camera], given: int, options: BakeOptions, say) -> None:
+    """Fit `baked` (in place) to target(i), the source's render from fit_cams[i], with the training loss and the
+    model's Adam groups; the position rate decays 100x over the fit. `given`: how many of fit_cams were given (their
+    extent sets the position rate)."""
+    from .data.scene import camera_extent
+    from .training.losses import photometric_loss
+
+    extent = camera_extent([c.to("cpu", torch.float64) for c in fit_cams[:given] or fit_cams])
     groups = baked.optim_groups(extent)
     for g in groups:
         if g["name"] == "means":
@@ -530,7 +555,7 @@ def bake_model(model, cameras: list[Camera], options: BakeOptions | None = None,
         for g in optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = options.position_lr * extent * 0.01 ** t
-        out = baked.render(fit_cams[i], backend=backend)
+        out = baked.render(fit_cams[i], backend=options.backend)
         loss = photometric_loss(out.rgb, rgb_t, options.lambda_dssim)
         if options.lambda_alpha > 0:
             loss = loss + options.lambda_alpha * (out.alpha - alpha_t).abs().mean()
@@ -542,15 +567,6 @@ def bake_model(model, cameras: list[Camera], options: BakeOptions | None = None,
         optimizer.step()
         if step % max(1, steps // 10) == 0 or step == steps:
             say(f"bake: step {step}/{steps} loss {value:.4f}")
-    bake_db = bake_error(baked, model, eval_cams, backend=backend)
-    report = {"bake_db": bake_db, "start_db": start_db, "plain_db": plain_error(model, eval_cams, backend=backend),
-              "splats": baked.num_primitives, "max_splats": budget, "source_surfels": n_source,
-              "source_model": getattr(model, "name", ""), "fit_views": len(fit_cams), "eval_views": len(eval_cams),
-              "seconds": time.perf_counter() - t0, "options": dataclasses.asdict(options)}
-    say(f"bake error: {bake_db:.2f} dB PSNR against the {report['source_model'] or 'source'} render on "
-        f"{len(eval_cams)} held-out views (split alone {start_db:.2f} dB, waves dropped {report['plain_db']:.2f} dB), "
-        f"{baked.num_primitives} splats")
-    return baked, report
 
 
 # --- export --------------------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import torch
 from .errors import SplatzooError
 from .io import atomic_path, read_torch, torch_save
 from .model_checks import drawing_problem, repair_geometry
-from .models.base import ModelOptionError, SplatModel
+from .models.base import ModelOptionError, RenderSettings, SplatModel
 from .options import option_value
 from .packing import PRECISIONS
 from .registry import MODELS, ModelSpec
@@ -195,6 +195,40 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     if not isinstance(name, str) or not isinstance(config, dict) or not isinstance(state, dict):
         raise fail("not a splatzoo model: 'model' must be a name, 'config' and 'state' dicts")
     config = stored_config(name, config)
+    settings, precision = _stored_settings(ckpt, fail)
+    try:
+        spec = MODELS.get(name)
+    except SplatzooError as e:  # unknown or broken plugin model: the registry's message, located
+        raise type(e)(f"{where}: {e}") from None
+    _check_config(name, spec.config_cls, config, fail)
+    try:
+        model = spec.cls(spec.config_cls(**config), 0)
+    except (SplatzooError, TypeError, ValueError, RuntimeError) as e:
+        raise fail(f"its config {_brief(config)} is not valid for model {name!r} ({_brief(e)})") from None
+    state = _checked_state(model, state, name, config, fail)
+    expected = _shapes(model)
+    variable = set(getattr(model, "variable_width", ()))
+    if not _own_layout(model, state, name, config, fail):
+        _check_shapes(name, expected, state, variable, fail)
+    try:
+        model.load_checkpoint_state(state)
+    except (TypeError, KeyError, ValueError, RuntimeError, IndexError, OverflowError) as e:  # Overflow: a count of 3e38
+        raise fail(f"its state does not fit model {name!r} with config {_brief(config)} "
+                   f"({type(e).__name__}: {_brief(e)})") from None
+    _check_shapes(name, expected, {**model.state_dict(), **model.per_primitive()}, variable, fail)
+    empty = drawing_problem(model)
+    if empty:
+        raise fail(empty)
+    _check_drawable(model, fail)
+    model.name = name
+    model.set_render_settings(settings)
+    model.precision = precision
+    return model
+
+
+def _stored_settings(ckpt: dict, fail) -> tuple[RenderSettings, str]:
+    """(render settings, precision) a checkpoint records; absent entries mean what they meant before they existed
+    (no filter, black, float32)."""
     antialias = ckpt.get("antialias", False)
     if not isinstance(antialias, bool):
         raise fail(f"'antialias' must be true or false, found {_brief(antialias)}")
@@ -208,16 +242,12 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
         if not ok:
             raise fail(f"'background' must be a colour of 3 finite numbers, found {_brief(background)}")
         background = tuple(float(c) for c in background)
-    try:
-        spec = MODELS.get(name)
-    except SplatzooError as e:  # unknown or broken plugin model: the registry's message, located
-        raise type(e)(f"{where}: {e}") from None
-    _check_config(name, spec.config_cls, config, fail)
-    try:
-        model = spec.cls(spec.config_cls(**config), 0)
-    except (SplatzooError, TypeError, ValueError, RuntimeError) as e:
-        raise fail(f"its config {_brief(config)} is not valid for model {name!r} ({_brief(e)})") from None
+    return RenderSettings(antialias, background), precision
 
+
+def _checked_state(model: SplatModel, state: dict, name: str, config: dict, fail) -> dict:
+    """The checkpoint's state with floating tensors as float32, each entry a dense finite tensor with data and every
+    parameter of `model` (built with 0 primitives) present."""
     params = dict(model.named_parameters())
     # the zoo's models compute in float32: another floating type (a file saved in half or double precision, or
     # edited) is read as float32 values, and a double beyond float32's range becomes infinite, refused below
@@ -236,9 +266,12 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
     lacking = [k for k in params if k not in state]
     if lacking:
         raise fail(f"its state lacks parameter(s) {', '.join(lacking)} of model {name!r} with config {_brief(config)}")
+    return state
 
-    expected = _shapes(model)
-    variable = set(getattr(model, "variable_width", ()))
+
+def _own_layout(model: SplatModel, state: dict, name: str, config: dict, fail) -> bool:
+    """Whether `state` is in a layout the model's own checkpoint() writes (e.g. packed waves: then its loader checks
+    the rest); its entries must be the model's either way."""
     stored = model.state_dict()
     try:  # entries the model's own checkpoint() adds (e.g. packed waves): then its loader checks the layout
         own_format = set(model.checkpoint()["state"]) - set(stored)
@@ -252,22 +285,7 @@ def _model_from_checkpoint(ckpt, where: str, fix: str) -> SplatModel:
         problems = ([f"unexpected {', '.join(extra)}"] if extra else []) + (
             [f"missing {', '.join(absent)}"] if absent else [])
         raise fail(f"its state does not match model {name!r} with config {_brief(config)}: {'; '.join(problems)}")
-    if not packed:
-        _check_shapes(name, expected, state, variable, fail)
-    try:
-        model.load_checkpoint_state(state)
-    except (TypeError, KeyError, ValueError, RuntimeError, IndexError, OverflowError) as e:  # Overflow: a count of 3e38
-        raise fail(f"its state does not fit model {name!r} with config {_brief(config)} "
-                   f"({type(e).__name__}: {_brief(e)})") from None
-    _check_shapes(name, expected, {**model.state_dict(), **model.per_primitive()}, variable, fail)
-    empty = drawing_problem(model)
-    if empty:
-        raise fail(empty)
-    _check_drawable(model, fail)
-    model.name = name
-    model.set_render_settings(antialias=antialias, background=background)
-    model.precision = precision
-    return model
+    return packed
 
 
 def _check_drawable(model: SplatModel, fail) -> None:
