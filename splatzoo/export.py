@@ -360,7 +360,7 @@ register_exporter(ExporterSpec(
     "baked", "splatzoo.bake:export_baked", "splatzoo.bake:BakeOptions",
     "wave models baked into plain 2DGS surfels in a standard PLY, for viewers that know no Gabor waves", (".ply",)))
 register_exporter(ExporterSpec(
-    "glb-splat", "splatzoo.gltf_splats:export_glb_splats", "splatzoo.gltf_splats:GlbSplatOptions",
+    "glb-splat", "splatzoo.gltf_export:export_glb_splats", "splatzoo.gltf_export:GlbSplatOptions",
     "glTF 2.0 binary with the Khronos KHR_gaussian_splatting extension (PlayCanvas, Babylon.js, CesiumJS, three.js): "
     "surfels as ellipses with a flat third axis, flagged as surfels; rich members baked first", (".glb",)))
 register_exporter(ExporterSpec(

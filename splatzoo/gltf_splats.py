@@ -66,7 +66,6 @@ not know are each a SplatzooError that names the file and the problem.
 """
 from __future__ import annotations
 
-import copy
 import json
 import math
 import struct
@@ -77,7 +76,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .bake import BakeOptions
 from .errors import SplatzooError
 from .model_ply import FLAT_LOG_SCALE, SATURATED_LOGIT, flatten_gaussians
 
@@ -87,7 +85,6 @@ GLB_MAGIC = b"glTF"
 SUFFIX = ".glb"
 COLOR_SPACE = "srgb_rec709_display"  # splatzoo's colours are display values, blended as they are
 SH_C0 = 0.2820947917738781
-VIEWER_RULES = ("exact", "3dgs")
 
 _JSON_CHUNK, _BIN_CHUNK = 0x4E4F534A, 0x004E4942
 _FLOAT, _BYTE, _UBYTE, _SHORT, _USHORT, _UINT = 5126, 5120, 5121, 5122, 5123, 5125
@@ -215,53 +212,33 @@ def glb_splat_bytes(model, *, color: bool = True, surfel: dict | None = None) ->
                      struct.pack("<II", len(blob), _BIN_CHUNK), bytes(blob)])
 
 
-def write_glb_splats(model, path, *, cameras=None, viewer: str = "exact", color: bool = True, bake=None,
-                     progress=None) -> Path:
-    """Write `model` to the .glb `path` (atomically) as KHR_gaussian_splatting splats, the layout of the module
-    docstring. Returns the path.
-
-    A plain `2dgs` model is written as it is. Any other model is baked into plain surfels first by
-    `splatzoo.bake.bake_model`, fitted to its renders from `cameras` (a list of splatzoo Cameras, e.g. the run's
-    training views; None: cameras around the model) with `bake` (a splatzoo.bake.BakeOptions, or a dict of its
-    fields). viewer: "exact" writes the surfels as trained; "3dgs" sizes them for viewers that add 0.3 px^2 to each
-    splat and keep its opacity (GaussianSplats3D-like; PlayCanvas draws the exact file closer to splatzoo, see the
-    module docstring), at the scale `cameras` saw them
-    (`splatzoo.export.compensate_viewer_dilation`; needs `cameras`). color: also write the COLOR_0 fallback.
-    progress: a callable receiving messages, or True to print them."""
+def save_glb_splats(model, path, *, color: bool = True, surfel: dict | None = None, progress=None) -> Path:
+    """Write the plain `2dgs` model to the .glb `path` (atomically), exactly as its surfels stand: the model-file
+    format `glb-splat` (splatzoo.model_files). Richer members are baked first by the export (splatzoo.gltf_export's
+    write_glb_splats, `splatzoo export --format glb-splat`). Returns the path."""
     from .io import atomic_path, say_progress
 
+    path = check_glb_path(path)
+    if getattr(model, "name", "") != "2dgs":
+        raise SplatzooError(f"a glb-splat file holds plain 2dgs surfels, not a {getattr(model, 'name', '') or 'model'} "
+                            f"model: export it with `splatzoo export RUN --format glb-splat --out {path.name}`, which "
+                            "bakes it into plain surfels first")
+    data = glb_splat_bytes(model, color=color, surfel=surfel)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    say_progress(progress)(f"{model.num_primitives} surfels written to {path} ({len(data) / 1e6:.2f} MB)")
+    return path
+
+
+def check_glb_path(path) -> Path:
+    """`path` as a .glb file to write, or a SplatzooError saying why not (a folder, another suffix)."""
     path = Path(path)
-    say = say_progress(progress)
-    if viewer not in VIEWER_RULES:
-        raise SplatzooError(f"glb-splat: viewer={viewer!r} is not known; use one of {', '.join(VIEWER_RULES)}")
     if path.is_dir():
         raise SplatzooError(f"cannot write the glTF splats to {path}: it is a folder; give a file name such as "
                             f"{path / 'model.glb'}")
     if not path.name.lower().endswith(SUFFIX) or path.name.lower() == SUFFIX:
         raise SplatzooError(f"a glTF binary is written to a .glb file; got {path}. Name it e.g. "
                             f"{path.with_name((path.stem or 'model') + SUFFIX)}")
-    cameras = list(cameras) if cameras is not None else None
-    if viewer != "exact" and not cameras:
-        raise SplatzooError(f"glb-splat: viewer={viewer} sizes each surfel at the cameras that trained it: pass "
-                            "cameras (the run's training views), or write viewer=exact")
-    body = {"viewer": viewer}
-    if getattr(model, "name", "") != "2dgs":
-        from .bake import BakeOptions, bake_model, bake_options, orbit_cameras_around
-
-        options = bake if isinstance(bake, BakeOptions) else bake_options(**(bake or {}))
-        source_name = getattr(model, "name", "") or type(model).__name__
-        model, report = bake_model(model, cameras or orbit_cameras_around(model), options, progress=progress)
-        body.update(bakedFrom=source_name, bakeDb=round(float(report["bake_db"]), 3))
-    if viewer != "exact":
-        from .export import compensate_viewer_dilation
-
-        model = copy.deepcopy(model)  # the caller's model keeps its surfels
-        compensate_viewer_dilation(model, cameras, viewer)
-    body = {"antialias": bool(getattr(model, "antialias", False)), **body}
-    data = glb_splat_bytes(model, color=color, surfel=body)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    say(f"{model.num_primitives} surfels written to {path} ({len(data) / 1e6:.2f} MB)")
     return path
 
 
@@ -717,41 +694,3 @@ def read_glb_splats(path):
     for note in notes:
         warnings.warn(note, UserWarning, stacklevel=2)
     return model
-
-
-# --- the exporter ----------------------------------------------------------------------------------------------
-
-def export_glb_splats(source, out, *, progress=None, viewer: str = "exact", color: bool = True, **bake) -> Path:
-    """The `glb-splat` export: the model of `source` (a run folder or a model file) written to the .glb `out` by
-    `write_glb_splats`, rich members baked from the run's training cameras (or cameras around the model), viewer
-    "3dgs" sized at the training cameras (a run folder only). `bake`: splatzoo.bake.BakeOptions fields."""
-    from .bake import bake_options, load_source
-
-    source, out = Path(source), Path(out)
-    options = bake_options(**bake)
-    if viewer != "exact" and not source.is_dir():
-        raise SplatzooError(f"glb-splat:viewer={viewer} sizes each surfel at its training cameras: export from the "
-                            f"run folder, not the file {source}")
-    read = source / "model.pt" if source.is_dir() else source
-    if out.exists() and out.resolve() == read.resolve():
-        raise SplatzooError(f"refusing to export onto the model being read ({read}); choose another --out")
-    model, cameras, _ = load_source(source, options.backend)
-    return write_glb_splats(model, out, cameras=cameras, viewer=viewer, color=color, bake=options, progress=progress)
-
-
-@dataclass
-class GlbSplatOptions(BakeOptions):
-    """The options of the glb-splat export: the bake's (used for models other than 2dgs), viewer and color."""
-
-    viewer: str = field(default="exact", metadata={
-        "help": "exact: the trained surfels (read back exactly; what PlayCanvas draws closest to splatzoo); 3dgs: "
-                "sized for viewers that add 0.3 px^2 to every splat and keep its opacity, from the run's training "
-                "cameras"})
-    color: bool = field(default=True, metadata={"help": "also write COLOR_0, the colour of readers that draw points"})
-
-    def validate(self) -> GlbSplatOptions:
-        super().validate()
-        if self.viewer not in VIEWER_RULES:
-            raise SplatzooError(f"glb-splat option viewer must be one of {', '.join(VIEWER_RULES)}, got "
-                                f"{self.viewer!r}")
-        return self

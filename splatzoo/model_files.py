@@ -197,9 +197,9 @@ def _read_glb_splats(path):
 
 
 def _write_glb_splats(model, path, *, progress=None, **options) -> Path:
-    from .gltf_splats import write_glb_splats
+    from .gltf_splats import save_glb_splats
 
-    return write_glb_splats(model, path, progress=progress, **options)
+    return save_glb_splats(model, path, progress=progress, **options)
 
 
 def _read_converted(source: Path):

@@ -180,7 +180,7 @@ class BrowserViewers:
         if viewer not in GLTF_VIEWERS:
             raise SplatzooError(f"unknown glTF viewer {viewer!r}; known: {', '.join(GLTF_VIEWERS)}")
         if not Path(glb_path).is_file():
-            raise SplatzooError(f"no glTF file at {glb_path}; write one with splatzoo.gltf_splats.write_glb_splats")
+            raise SplatzooError(f"no glTF file at {glb_path}; write one with splatzoo.gltf_export.write_glb_splats")
         absent = missing(GLTF_PACKAGES)
         if absent:
             raise SplatzooError(absent)

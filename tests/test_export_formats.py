@@ -294,7 +294,7 @@ def test_cli_lists_formats_and_refuses_unknown_ones(tmp_path):
     src = _saved(random_model("2dgs", n=5), tmp_path)
     res = runner.invoke(app, ["export", str(src), "--format", "obj", "--out", str(tmp_path / "m.obj")])
     assert isinstance(res.exception, UnknownNameError)
-    assert "known: baked, compressed-ply, mesh-glb, mesh-obj, ply, sog, spz" in str(res.exception)
+    assert "known: baked, compressed-ply, glb-splat, mesh-glb, mesh-obj, ply, sog, spz" in str(res.exception)
     res = runner.invoke(app, ["export", str(src), "--format", "spz", "--out", str(tmp_path / "m.ply")])
     assert isinstance(res.exception, SplatzooError) and "must end in .spz" in str(res.exception)
     res = runner.invoke(app, ["export", str(src), "--out", str(tmp_path / "m.ply")])

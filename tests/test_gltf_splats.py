@@ -19,16 +19,8 @@ import torch
 
 from splatzoo import Camera, SplatzooError, create_model
 from splatzoo.geometry import normals_to_quats, rgb_to_sh0
-from splatzoo.gltf_splats import (
-    EXTENSION,
-    SURFEL_EXTENSION,
-    GlbSplatOptions,
-    export_glb_splats,
-    glb_splat_bytes,
-    is_glb,
-    read_glb_splats,
-    write_glb_splats,
-)
+from splatzoo.gltf_export import GlbSplatOptions, export_glb_splats, write_glb_splats
+from splatzoo.gltf_splats import EXTENSION, SURFEL_EXTENSION, glb_splat_bytes, is_glb, read_glb_splats
 
 ROOT = Path(__file__).resolve().parents[1]
 VALIDATOR = ROOT / "tools" / "gltf-validator"
