@@ -10,13 +10,15 @@ import os as _os
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from .errors import SplatzooError  # noqa: E402
+from .model_files import load_model, open_model, write_model  # noqa: E402
 from .model_ply import load_ply  # noqa: E402
 from .rasterizers import available_backends, rasterize
 from .registry import ModelSpec
 from .types import Camera, RenderOutput, Surfels
-from .zoo import create_model, get_model_spec, list_models, load_model, save_model
+from .zoo import create_model, get_model_spec, list_models, save_model
 
 __version__ = "0.1.0"
 
 __all__ = ["Camera", "ModelSpec", "RenderOutput", "SplatzooError", "Surfels", "available_backends",
-           "create_model", "get_model_spec", "list_models", "load_model", "load_ply", "rasterize", "save_model"]
+           "create_model", "get_model_spec", "list_models", "load_model", "load_ply", "open_model", "rasterize",
+           "save_model", "write_model"]

@@ -132,6 +132,13 @@ def open_model(path, *, backend: str | None = None, latest: bool = False) -> Ope
     return OpenedModel(model, Path(file), fmt.name, note)
 
 
+def load_model(path, *, backend: str | None = None):
+    """The model in `path`: a model file of any format in FORMATS (.pt, .szp, .ply, .glb, .spz, .sog, .splat, .ksplat,
+    compressed PLY) or a run folder. `splatzoo.load_model` is this; `splatzoo.zoo.load_model` reads torch and packed
+    files only (the table's pt and szp reader)."""
+    return open_model(path, backend=backend).model
+
+
 def load_source(source):
     """(model, the file it was read from) of a run folder or a model file: `open_model` as a pair."""
     opened = open_model(source)

@@ -668,3 +668,24 @@ def test_playcanvas_errors_name_the_file(playcanvas, tmp_path):
     mesh.write_bytes(pack(doc, blob))
     with pytest.raises(SplatzooError, match=r"playcanvas failed to render .*points\.glb: .*no Gaussian splats"):
         playcanvas.render_gltf(mesh, cam)
+
+
+def test_export_command_and_load_model_read_the_glb_back(tmp_path):
+    """`splatzoo export FILE --format glb-splat` writes the file and `splatzoo.load_model` (every model format) reads
+    it back as the surfels written."""
+    import splatzoo
+    from typer.testing import CliRunner
+
+    from splatzoo.cli import app
+
+    model = random_2dgs(degree=1)
+    splatzoo.save_model(model, tmp_path / "m.pt")
+    res = CliRunner().invoke(app, ["export", str(tmp_path / "m.pt"), "--format", "glb-splat", "--out",
+                                   str(tmp_path / "m.glb")])
+    assert res.exit_code == 0, res.output
+    back = splatzoo.load_model(tmp_path / "m.glb")
+    assert back.name == "2dgs" and back.num_primitives == model.num_primitives
+    a = model.render(CAMERA, backend="reference").rgb
+    b = back.render(CAMERA, backend="reference").rgb
+    assert float((a - b).abs().max()) < 1e-4
+    assert splatzoo.open_model(tmp_path / "m.glb").format == "glb-splat"
