@@ -76,20 +76,38 @@ sz::CameraArgs<S> camera_args(const Tensor& KR, const Tensor& Kt, const Tensor& 
     return c;
 }
 
+// The batch's sizes, the wave count K and the texels a side T, from the saved per-pair fields by the table: each the
+// size of the first field with that dimension (0 if none has it).
+void batch_sizes(const TensorMap& c, int64_t& K, int64_t& TS) {
+    K = -1;
+    TS = -1;
+    for (const sz::SurfelFieldInfo& info : sz::SURFEL_FIELD_INFO) {
+        if (info.role == sz::Role::geometry) continue;
+        for (int d = 0; d < info.rank; ++d) {
+            if (info.dims[d] == sz::SZ_K && K < 0) K = need(c, info.name).size(d + 1);
+            if (info.dims[d] == sz::SZ_T && TS < 0) TS = need(c, info.name).size(d + 1);
+        }
+    }
+    K = K < 0 ? 0 : K;
+    TS = TS < 0 ? 0 : TS;
+}
+
 // The surfels, their projection and the visible ones' depth order, as the tile loops read them.
 template <class S>
 sz::SurfelArgs<S> surfel_args(const sz::Settings& st, const TensorMap& c, int64_t W, int64_t H) {
-    const Tensor& wv = need(c, "wave_vectors");
     const Tensor& order = need(c, "order");
     auto wc = c.find("wave_counts");
-    auto tf = c.find("texture_filtered");
+    auto prepared = c.find("appearance_prepared");
+    int64_t K = 0, TS = 0;
+    batch_sizes(c, K, TS);
     sz::SurfelArgs<S> a{};
     a.st = st;
-    a.N = int(wv.size(0));
+    a.N = int(need(c, "T").size(0));
     a.M = int(order.size(0));
-    a.K = int(wv.size(1));
-    a.TS = int(need(c, "texture").size(1));
-    a.texture_filtered = tf != c.end() ? tf->second.data_ptr<S>() : nullptr;
+    a.K = int(K);
+    a.TS = int(TS);
+    a.prepared = prepared != c.end() ? prepared->second.data_ptr<S>() : nullptr;
+    a.prepared_width = prepared != c.end() ? int(prepared->second.size(1)) : 0;
     a.W = int(W);
     a.H = int(H);
     a.order = order.data_ptr<int>();
@@ -230,7 +248,9 @@ std::pair<TensorMap, TensorMap> render(const sz::Settings& st, const std::vector
     state["geom"] = at::empty({N, sz::GEOM}, f);
     state["bounds"] = at::empty({N, 4}, i32);
     state["tile_start"] = at::empty({nt + 1}, i32);
-    if (TS > 0 && st.pixel_filter > 0) state["texture_filtered"] = at::empty({N, TS, TS, sz::TEX_CHANNELS}, f);
+    // the appearance's per-surfel set-up (anti-aliased: the prefiltered textures), by the prepare step
+    const int prepared = sz::Appearance<float>::prepared_width(int(K), int(TS), st.pixel_filter > 0);
+    if (prepared > 0) state["appearance_prepared"] = at::empty({N, prepared}, f);
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_bin", [&] {
         const auto s = surfel_args<scalar_t>(st, state, W, H);
         scalar_t* geom = state["geom"].data_ptr<scalar_t>();
@@ -318,8 +338,9 @@ TensorMap render_backward(const sz::Settings& st, const Tensor& means, const Ten
                      {"center_depths", at::zeros({N}, f)}, {"normals", at::zeros({N, 3}, f)}};
     for (const sz::SurfelFieldInfo& info : sz::SURFEL_FIELD_INFO)
         if (info.role != sz::Role::geometry) v_c[info.name] = at::zeros_like(need(state, info.name));
-    const int64_t K = need(state, "wave_vectors").size(1);
-    const int GW = sz::grad_width(int(K), int(need(state, "texture").size(1)));
+    int64_t K = 0, TS = 0;
+    batch_sizes(state, K, TS);
+    const int GW = sz::grad_width(int(K), int(TS));
     if (M > 0) {
         AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splatzoo_backward", [&] {
             using S = scalar_t;

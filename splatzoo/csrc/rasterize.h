@@ -57,9 +57,10 @@ struct SurfelArgs {
 #define SZ_FIELD_POINTER(name) const S* name;
     SZ_PAIR_FIELDS(SZ_FIELD_POINTER)
 #undef SZ_FIELD_POINTER
-    // anti-aliased with a texture: [N,TS,TS,4] the prefiltered textures (prefilter_texture), written by the prepare
-    // step for the visible surfels; else nullptr
-    S* texture_filtered;
+    // [N,prepared_width] the appearance's per-surfel set-up (Appearance::prepare: anti-aliased, the prefiltered
+    // textures), written by the prepare step for the visible surfels; nullptr where prepared_width is 0
+    S* prepared;
+    int prepared_width;
     // [N] waves in use per surfel (its first wcount[i] of K), or nullptr for all K. The tile loops run the wave
     // loops to k < wcount[i], so removed waves cost nothing; the row stride stays K.
     const int* wcount;
@@ -98,29 +99,17 @@ inline int tiles_x(int W) { return (W + TILE - 1) / TILE; }
 inline int tiles_y(int H) { return (H + TILE - 1) / TILE; }
 
 // ---- shared by the CPU loops and the CUDA kernels ----
-// One surfel's appearance as its pairs see it (its rows of the SurfelArgs arrays, the waves it uses, its texture:
-// prefiltered when anti-aliased) and its normal. raw: the texture as given instead (finalize_surfel).
+// Surfel i's appearance as its pairs see it: its rows of the kinds' fields, the waves it uses, its prepared row
+// (anti-aliased: the prefiltered texture). Appearance::bind, for SurfelArgs.
 template <class S>
-struct SurfelColour {
-    const S* normal;
-    Appearance<S> ap;
-};
-template <class S>
-SZ_HD SurfelColour<S> surfel_colour(const SurfelArgs<S>& s, int64_t i, bool raw = false) {
-    const int64_t texels = int64_t(TEX_CHANNELS) * s.TS * s.TS * i;
-    const S* tex = s.TS == 0 ? nullptr : (s.texture_filtered && !raw ? s.texture_filtered : s.texture) + texels;
-    return {s.normal + 3 * i,
-            {s.base_color + 3 * i, s.wave_vectors + 2 * s.K * i, s.wave_phases + s.K * i,
-             s.wave_amplitudes + 3 * s.K * i, s.wcount ? s.wcount[i] : s.K, s.K, tex, s.TS}};
+SZ_HD Appearance<S> surfel_appearance(const SurfelArgs<S>& s, int64_t i) {
+    return Appearance<S>::bind(s, i);
 }
 
-// The per-surfel appearance set-up of a prepare step (visible surfel i, its Geom done): anti-aliased, its prefiltered
-// texture.
+// The per-surfel appearance set-up of a prepare step (visible surfel i, its Geom done).
 template <class S>
 SZ_HD void prepare_appearance(const SurfelArgs<S>& s, const Geom<S>& g, int64_t i) {
-    if (s.TS == 0 || s.texture_filtered == nullptr) return;
-    const int64_t texels = int64_t(TEX_CHANNELS) * s.TS * s.TS * i;
-    prefilter_texture(g.blur, s.texture + texels, s.TS, s.texture_filtered + texels);
+    Appearance<S>::prepare(s, g.blur, i);
 }
 
 // A pixel's finished forward state -> the outputs and the state the backward reads, at pixel index o.
@@ -158,13 +147,10 @@ SZ_HD void load_pixel_bwd(PixelBwd<S>& p, const FrameArgs<S>& f, const GradArgs<
 // A surfel's summed slot row -> its input gradients (row R: float or double).
 template <class S, class R>
 SZ_HD void finalize_surfel(const SurfelArgs<S>& s, const GradArgs<S>& g, int64_t i, const R* row) {
-    const int K = s.K;
-    Appearance<S> ap = surfel_colour(s, i, true).ap;
-    ap.K = K;  // every wave's gradients (those beyond a surfel's count are 0)
-    finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, ap, row, g.v_T + 9 * i, g.v_center + 2 * i,
-                   g.v_depth_c + i, g.v_normal_c + 3 * i, g.v_opacities + i, g.v_falloff + i, g.v_base_color + 3 * i,
-                   g.v_wave_vectors + 2 * K * i, g.v_wave_phases + K * i, g.v_wave_amplitudes + 3 * K * i,
-                   g.v_texture + int64_t(TEX_CHANNELS) * s.TS * s.TS * i);
+    const SurfelGrads<S> v{g.v_T + 9 * i,           g.v_center + 2 * i, g.v_depth_c + i,
+                           g.v_normal_c + 3 * i,    g.v_opacities + i,  g.v_falloff + i,
+                           Appearance<S>::bind_grads(g, s, i)};
+    finalize_grads(s.st, s.T + 9 * i, s.center + 2 * i, surfel_appearance(s, i), row, v);
 }
 
 // ---- CPU (OpenMP) ----

@@ -40,10 +40,10 @@ struct TileScratch {
 };
 
 // Rows r0..r1 (inclusive, tile-relative) of one surfel: alpha, u, v, z per pixel (KEEP: and the footprint values
-// the anti-aliased backward needs). BETA: the surfel's falloff is the Beta kernel (falloff in surfel_math.h). GAIN:
-// its appearance has an opacity gain (a texture: ap), applied in a second loop over the rows (the texture's reads
-// would keep the first from vectorising).
-template <bool FILTERED, bool KEEP, bool BETA, bool GAIN, class S>
+// the anti-aliased backward needs). F: the surfel's falloff (with_falloff in surfel_math.h). GAIN: its appearance has
+// an opacity gain (Appearance::has_gain), applied in a second loop over the rows (a kind's reads, a texture's, would
+// keep the first from vectorising).
+template <bool FILTERED, bool KEEP, class F, bool GAIN, class S>
 __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Geom<S>& g, const Appearance<S>& ap,
                                               const S* xs, S y0, int r0, int r1, TileScratch<S>& sc) {
     const Geom<S> gl = g;  // local copies let the compiler keep every field in a register
@@ -55,9 +55,9 @@ __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Ge
         for (int c = 0; c < TILE; ++c) {
             PairEval<S> e;
             if constexpr (FILTERED)
-                eval_pair_filtered<BETA>(st, gl, xs[c], y, e);
+                eval_pair_filtered<F>(st, gl, xs[c], y, e);
             else
-                eval_pair<BETA>(st, gl, xs[c], y, e);
+                eval_pair<F>(st, gl, xs[c], y, e);
             sc.alpha[o + c] = e.alpha;
             sc.u[o + c] = e.u;
             sc.v[o + c] = e.v;
@@ -86,7 +86,7 @@ __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Ge
 #pragma omp simd
             for (int c = 0; c < TILE; ++c) {
                 const int p = o + c;
-                const S ex = rmul(sc.ex[p], appearance_gain(al, sc.u[p], sc.v[p]));
+                const S ex = rmul(sc.ex[p], al.gain(sc.u[p], sc.v[p]));
                 sc.ex[p] = ex;
                 sc.alpha[p] = pair_alpha(st, rmul(gl.o, ex), sc.z[p]);
             }
@@ -98,21 +98,20 @@ __attribute__((noinline)) void eval_rows_impl(const Settings& settings, const Ge
 template <bool GAIN, class S>
 void eval_rows_kernel(const Settings& st, const Geom<S>& g, const Appearance<S>& ap, const S* xs, S y0, int r0,
                       int r1, TileScratch<S>& sc, bool keep) {
-    const bool beta = g.s > S(0);
-    if (st.pixel_filter > 0 && keep)
-        beta ? eval_rows_impl<true, true, true, GAIN>(st, g, ap, xs, y0, r0, r1, sc)
-             : eval_rows_impl<true, true, false, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
-    else if (st.pixel_filter > 0)
-        beta ? eval_rows_impl<true, false, true, GAIN>(st, g, ap, xs, y0, r0, r1, sc)
-             : eval_rows_impl<true, false, false, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
-    else
-        beta ? eval_rows_impl<false, false, true, GAIN>(st, g, ap, xs, y0, r0, r1, sc)
-             : eval_rows_impl<false, false, false, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
+    with_falloff(g.s, [&](auto falloff) SZ_INLINE_LAMBDA {
+        using F = decltype(falloff);
+        if (st.pixel_filter > 0 && keep)
+            eval_rows_impl<true, true, F, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
+        else if (st.pixel_filter > 0)
+            eval_rows_impl<true, false, F, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
+        else
+            eval_rows_impl<false, false, F, GAIN>(st, g, ap, xs, y0, r0, r1, sc);
+    });
 }
 template <class S>
 void eval_rows(const Settings& st, const Geom<S>& g, const Appearance<S>& ap, const S* xs, S y0, int r0, int r1,
                TileScratch<S>& sc, bool keep) {
-    if (ap.TS > 0)
+    if (ap.has_gain())
         eval_rows_kernel<true>(st, g, ap, xs, y0, r0, r1, sc, keep);
     else
         eval_rows_kernel<false>(st, g, ap, xs, y0, r0, r1, sc, keep);
@@ -135,9 +134,9 @@ struct LaneAcc {
 
 // The anti-aliased pairs' geometry over rows r0..r1 of one surfel: geom_backward_filtered at every pixel from the
 // values eval_rows kept and the cotangents the scalar pass left (0 where the pair did not contribute), summed per
-// slot into t[0, GEOM_SLOTS). Each row is one vectorised loop; the lanes are summed once per call. BETA: the
-// surfel's falloff is the Beta kernel.
-template <bool BETA, class S>
+// slot into t[0, GEOM_SLOTS). Each row is one vectorised loop; the lanes are summed once per call. F: the surfel's
+// falloff.
+template <class F, class S>
 __attribute__((noinline)) void geom_rows_filtered(const Settings& settings, const Geom<S>& g, const S* xs, S y0,
                                                   int r0, int r1, const TileScratch<S>& sc, S* t) {
     const Geom<S> gl = g;
@@ -175,7 +174,7 @@ __attribute__((noinline)) void geom_rows_filtered(const Settings& settings, cons
             e.p11 = sc.p11[p];
             e.idet = sc.idet[p];
             LaneAcc<S> acc{lanes, c};
-            geom_backward_filtered<BETA>(st, gl, e, sc.v_alpha[p], sc.v_z[p], sc.v_u[p], sc.v_v[p], acc);
+            geom_backward_filtered<F>(st, gl, e, sc.v_alpha[p], sc.v_z[p], sc.v_u[p], sc.v_v[p], acc);
         }
     }
     for (int i = 0; i < GEOM_SLOTS; ++i) {
@@ -241,8 +240,7 @@ struct PairPass {
     const Settings& st;
     const Geom<S>& g;
     const S* normal;
-    const Appearance<S>& ap;  // as the pixels see it (anti-aliased: the amplitudes times the gains, fold_gains)
-    const S* gains;           // anti-aliased: the wave gains
+    const Appearance<S>& ap;  // as the pixels see it (anti-aliased: folded, Appearance::fold)
     int r0, r1, c0, c1, rel;
     S y0;
 };
@@ -266,7 +264,7 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
                 PairEval<S> e;
                 if constexpr (!FILTERED) {
                     eval_pair_any(q.st, q.g, sc.xs[c], q.y0 + S(r), e);  // its hit or the filter
-                    if (q.ap.TS > 0) apply_opacity_gain(q.st, q.g, appearance_gain(q.ap, e.u, e.v), e);
+                    if (q.ap.has_gain()) apply_opacity_gain(q.st, q.g, q.ap.gain(e.u, e.v), e);
                 } else {
                     e.raw = rmul(q.g.o, sc.ex[p]);  // o f g, as geom_rows_filtered takes it
                 }
@@ -275,7 +273,7 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
                 e.u = sc.u[p];
                 e.v = sc.v[p];
                 e.z = sc.z[p];
-                // anti-aliased, the gains are folded into q.wa: no blur here, and the amplitude slots get them below
+                // anti-aliased, the appearance is folded: no blur here, and its slots are unfolded below
                 const PairCotangents<S> v = blend_backward_colour(q.st, px[p], e, q.normal, q.ap, q.rel, acc,
                                                                   static_cast<const S*>(nullptr));
                 if constexpr (FILTERED) {
@@ -284,20 +282,19 @@ __attribute__((noinline, flatten)) void backward_pixels(const PairPass<S>& q, Ti
                     sc.v_u[p] = v.u;
                     sc.v_v[p] = v.v;
                 } else {
-                    q.g.s > S(0) ? geom_backward<true>(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc)
-                                 : geom_backward<false>(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc);
+                    with_falloff(q.g.s, [&](auto falloff) SZ_INLINE_LAMBDA {
+                        geom_backward<decltype(falloff)>(q.st, q.g, e, v.alpha, v.z, v.u, v.v, acc);
+                    });
                 }
             }
         if constexpr (FILTERED) {
             alignas(64) S t[GEOM_SLOTS];
-            if (q.g.s > S(0))
-                geom_rows_filtered<true>(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
-            else
-                geom_rows_filtered<false>(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
+            with_falloff(q.g.s, [&](auto falloff) SZ_INLINE_LAMBDA {
+                geom_rows_filtered<decltype(falloff)>(q.st, q.g, sc.xs, q.y0, q.r0, q.r1, sc, t);
+            });
             for (int j = 0; j < GEOM_SLOTS; ++j)
                 if (filtered_geom_slot(j)) acc(j, t[j]);
-            for (int k = 0; k < q.ap.K; ++k)  // d(gain a)/da = gain
-                for (int j = 3; j < 6; ++j) acc.g[G_WAVES + G_PER_WAVE * k + j] *= q.gains[k];
+            q.ap.unfold(acc.g);
         }
     });
 }
@@ -356,8 +353,9 @@ void cpu_forward_impl(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads
     {
         TileScratch<S> sc;
         std::vector<PixelFwd<S>> px(TILE_PIXELS);
-        // anti-aliased: the surfel's wave gains and its amplitudes times them
-        std::vector<S> gains(std::max(s.K, 1)), folded(3 * std::max(s.K, 1));
+        // anti-aliased: what the surfel's appearance folds (Appearance::fold)
+        std::vector<S> fold_values(std::max(Appearance<S>::fold_values(s.K), 1));
+        std::vector<S> fold_factors(std::max(Appearance<S>::fold_factors(s.K), 1));
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < nt; ++t) {
             const TileRect tr = tile_rect(t, W, H);
@@ -374,13 +372,10 @@ void cpu_forward_impl(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads
                 const int i = f.tile_list[pos];
                 int c0, c1, r0, r1;
                 if (!clip_box(f.bounds + 4 * i, tr, c0, c1, r0, r1)) continue;
-                const SurfelColour<S> sf = surfel_colour(s, i);
-                eval_rows(s.st, geom[i], sf.ap, sc.xs, y0, r0, r1, sc, false);
-                Appearance<S> ap = sf.ap;
-                if (filtered) {
-                    fold_gains(geom[i], ap.wv, ap.wa, ap.K, gains.data(), folded.data());
-                    ap.wa = folded.data();
-                }
+                Appearance<S> ap = surfel_appearance(s, i);
+                eval_rows(s.st, geom[i], ap, sc.xs, y0, r0, r1, sc, false);
+                if (filtered) ap.fold(geom[i], fold_values.data(), fold_factors.data());
+                const S* normal = s.normal + 3 * int64_t(i);
                 const int rel = pos - start;
                 for (int r = r0; r <= r1; ++r)
                     for (int c = c0; c <= c1; ++c) {
@@ -388,8 +383,8 @@ void cpu_forward_impl(const SurfelArgs<S>& s, const FrameArgs<S>& f, int threads
                         const S a = sc.alpha[p];
                         if (a == S(0) || px[p].done) continue;
                         S col[3], pre[3];
-                        appearance_color(ap, sc.u[p], sc.v[p], col, pre);
-                        blend_forward<IMAGE_ONLY>(s.st, px[p], a, sc.z[p], col, sf.normal, rel);
+                        ap.colour(sc.u[p], sc.v[p], col, pre);
+                        blend_forward<IMAGE_ONLY>(s.st, px[p], a, sc.z[p], col, normal, rel);
                         active -= px[p].done;
                     }
             }
@@ -419,8 +414,9 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
     {
         TileScratch<S> sc;
         std::vector<PixelBwd<S>> px(TILE_PIXELS);
-        // anti-aliased: the surfel's wave gains and its amplitudes times them
-        std::vector<S> gains(std::max(K, 1)), folded(3 * std::max(K, 1));
+        // anti-aliased: what the surfel's appearance folds (Appearance::fold)
+        std::vector<S> fold_values(std::max(Appearance<S>::fold_values(K), 1));
+        std::vector<S> fold_factors(std::max(Appearance<S>::fold_factors(K), 1));
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < nt; ++t) {
             const TileRect tr = tile_rect(t, W, H);
@@ -449,15 +445,11 @@ void cpu_backward(const SurfelArgs<S>& s, const FrameArgs<S>& f, const GradArgs<
                     continue;
                 }
                 const Geom<S>& gm = geom[i];
-                const SurfelColour<S> sf = surfel_colour(s, i);
-                eval_rows(s.st, gm, sf.ap, sc.xs, y0, r0, r1, sc, true);
-                Appearance<S> ap = sf.ap;
-                if (filtered) {
-                    fold_gains(gm, ap.wv, ap.wa, ap.K, gains.data(), folded.data());
-                    ap.wa = folded.data();
-                }
+                Appearance<S> ap = surfel_appearance(s, i);
+                eval_rows(s.st, gm, ap, sc.xs, y0, r0, r1, sc, true);
+                if (filtered) ap.fold(gm, fold_values.data(), fold_factors.data());
                 const int rel = pos - start;
-                const PairPass<S> q{s.st, gm, sf.normal, ap, gains.data(), r0, r1, c0, c1, rel, y0};
+                const PairPass<S> q{s.st, gm, s.normal + 3 * int64_t(i), ap, r0, r1, c0, c1, rel, y0};
                 if (filtered)
                     backward_pixels<true>(q, sc, px.data(), row, GW);
                 else

@@ -148,12 +148,13 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
             if (!in_box(sh.b[j], x, y)) continue;
             PairEval<S> e;
             eval_pair_any(st, sh.g[j], px, py, e);
-            const SurfelColour<S> sf = surfel_colour(s, sh.id[j]);
-            if (sf.ap.TS > 0) apply_opacity_gain(st, sh.g[j], appearance_gain(sf.ap, e.u, e.v), e);
+            const int64_t i = sh.id[j];
+            const Appearance<S> ap = surfel_appearance(s, i);
+            if (ap.has_gain()) apply_opacity_gain(st, sh.g[j], ap.gain(e.u, e.v), e);
             if (e.alpha == S(0)) continue;
             S col[3], pre[3];
-            appearance_color(sf.ap, e.u, e.v, col, pre, st.pixel_filter > 0 ? sh.g[j].blur : nullptr);
-            blend_forward<IMAGE_ONLY>(st, p, e.alpha, e.z, col, sf.normal, base + j - start);
+            ap.colour(e.u, e.v, col, pre, st.pixel_filter > 0 ? sh.g[j].blur : nullptr);
+            blend_forward<IMAGE_ONLY>(st, p, e.alpha, e.z, col, s.normal + 3 * i, base + j - start);
         }
     }
     if (inside) store_pixel(f, int64_t(y) * s.W + x, p);
@@ -161,7 +162,7 @@ __global__ void __launch_bounds__(BLOCK) forward_kernel(SurfelArgs<S> s, FrameAr
 
 // Sums one gradient slot over the warp, then lane 0 adds it to the surfel's row: one atomic per slot per warp
 // instead of one per pixel. Lanes whose pair did not contribute take part with zero. (Any wave count.) scatter: a
-// slot that differs from lane to lane (a texel), one atomic per lane.
+// slot that differs from lane to lane (a kind's scatter slot: a texel), one atomic per lane.
 template <class S>
 struct WarpSum {
     S* row;
@@ -177,8 +178,8 @@ struct WarpSum {
     }
 };
 
-// Accumulates a pair's slots into a register row (compile-time slot indices: see for_each_wave); scatter (texels)
-// adds to the surfel's row in global memory, one atomic per lane.
+// Accumulates a pair's dense slots into a register row (compile-time slot indices: see for_each_wave); scatter (a
+// kind's scatter slots: texels) adds to the surfel's row in global memory, one atomic per lane.
 template <class S>
 struct RowAcc {
     S* row;
@@ -224,8 +225,8 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
     const auto [t, x, y, inside] = thread_pixel(s.W, s.H);
     const S px = S(x) + S(0.5), py = S(y) + S(0.5);
     const int start = f.tile_start[t];
-    const int GW = grad_width(s.K, s.TS);  // the row's stride; the register row holds its first grad_width(K) slots
-    const int GWR = grad_width(s.K);
+    const int GW = grad_width(s.K, s.TS);  // the row's stride; the register row holds its dense slots
+    const int GWR = dense_width(s.K);
     __shared__ Batch<S> sh;
     __shared__ int max_last;
     PixelBwd<S> p{};  // a pixel outside the image keeps last = 0: it never contributes
@@ -248,19 +249,19 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
             PairEval<S> e;
             eval_pair_any(st, sh.g[j], px, py, e);  // rounds as in the forward: the same pairs contribute
             const int64_t i = sh.id[j];
-            const SurfelColour<S> sf = surfel_colour(s, i);
-            if (sf.ap.TS > 0) apply_opacity_gain(st, sh.g[j], appearance_gain(sf.ap, e.u, e.v), e);
+            const Appearance<S> ap = surfel_appearance(s, i);
+            if (ap.has_gain()) apply_opacity_gain(st, sh.g[j], ap.gain(e.u, e.v), e);
             const bool valid = candidate && e.alpha != S(0);
             if (!__any_sync(FULL_WARP, valid)) continue;
             S* surfel_row = rows + i * GW;
             PixelBwd<S> q = p;
             if constexpr (KMAX >= 0) {
-                constexpr int ROW = (grad_width(KMAX) + 31) / 32 * 32;
+                constexpr int ROW = (dense_width(KMAX) + 31) / 32 * 32;
                 S row[ROW];
 #pragma unroll
                 for (int k = 0; k < ROW; ++k) row[k] = S(0);
                 RowAcc<S> acc{row, valid, surfel_row};
-                blend_backward<KMAX>(st, q, sh.g[j], e, sf.normal, sf.ap, rel, acc);
+                blend_backward<KMAX>(st, q, sh.g[j], e, s.normal + 3 * i, ap, rel, acc);
                 warp_reduce_scatter<S, ROW>(row);
                 const int first = int(threadIdx.x & 31) * (ROW / 32);
 #pragma unroll
@@ -268,7 +269,7 @@ __global__ void __launch_bounds__(BLOCK) backward_kernel(SurfelArgs<S> s, FrameA
                     if (first + k < GWR && row[k] != S(0)) atomicAdd(surfel_row + first + k, row[k]);
             } else {
                 WarpSum<S> acc{surfel_row, valid};
-                blend_backward(st, q, sh.g[j], e, sf.normal, sf.ap, rel, acc);
+                blend_backward(st, q, sh.g[j], e, s.normal + 3 * i, ap, rel, acc);
             }
             if (valid) p = q;
         }

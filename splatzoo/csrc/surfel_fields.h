@@ -37,3 +37,9 @@ constexpr SurfelFieldInfo SURFEL_FIELD_INFO[NUM_SURFEL_FIELDS] = {
 #define SZ_SURFEL_FIELDS(X) X(means) X(quats) X(scales) X(opacities) X(base_color) X(wave_vectors) X(wave_phases) X(wave_amplitudes) X(falloff) X(texture)
 // X(name) for the fields the tile loops read per (surfel, pixel) pair (every role but geometry)
 #define SZ_PAIR_FIELDS(X) X(opacities) X(base_color) X(wave_vectors) X(wave_phases) X(wave_amplitudes) X(falloff) X(texture)
+// X(name, row) for the fields of each appearance kind, in table order; row: the field's scalars per surfel, in terms
+// of the batch's sizes K and T (names the expansion site defines). Each kind's struct (surfel_math.h) declares its
+// field pointers and gradient pointers from its list.
+#define SZ_KIND_FIELDS_WAVE_BANK(X) X(base_color, 3) X(wave_vectors, K * 2) X(wave_phases, K) X(wave_amplitudes, K * 3)
+#define SZ_KIND_FIELDS_TEXTURE(X) X(texture, T * T * 4)
+#define SZ_APPEARANCE_KINDS(X) X(WaveBank, wave_bank, SZ_KIND_FIELDS_WAVE_BANK) X(Texture, texture, SZ_KIND_FIELDS_TEXTURE)

@@ -1,20 +1,30 @@
 // Per-(surfel, pixel) maths of the splatzoo tile rasterizers, written once for the C++ and the CUDA tile loops.
 //
-// It reproduces splatzoo/rasterizers/reference.py (_shade_rect, _appearance_color) operation for operation, plus the
+// It reproduces splatzoo/rasterizers/reference.py (_shade_rect and the kinds' twins) operation for operation, plus the
 // hand-written derivatives. The tile loops (rasterize_cpu.cpp, rasterize_cuda.cu) own binning and traversal only.
 //
 // Gradients of one (surfel, pixel) pair are accumulated through a functor `acc(slot, value)` into the slots below
-// (a per-surfel row of grad_width(K) scalars); finalize_grads() turns a summed row into gradients of the op inputs.
+// (a per-surfel row of grad_width(K, T) scalars); finalize_grads() turns a summed row into gradients of the op inputs.
+//
+// What a surfel looks like is its appearance: a composition of kinds (the wave bank, the texture), one section each
+// below, with the kernel falloff (Gaussian, Beta) a declared part of the same contract. The tile loops ask the
+// composition (Appearance) and the falloff dispatch (with_falloff); they name no kind.
 #pragma once
 
 #include <cmath>
 #include <cstdint>
 #include <cstring>
 
+#include "surfel_fields.h"
+
 #ifdef __CUDACC__
 #define SZ_HD __host__ __device__ __forceinline__
+#define SZ_INLINE_LAMBDA
 #else
 #define SZ_HD inline __attribute__((always_inline))
+// A lambda that stands in for inlined code (a body handed to with_falloff): GCC may keep a generic lambda out of line,
+// and contracts multiply-adds into FMAs only within a function, so the pair's maths would round otherwise.
+#define SZ_INLINE_LAMBDA __attribute__((always_inline))
 #endif
 
 namespace sz {
@@ -45,12 +55,12 @@ struct Geom {
     S cx, cy, zc;        // projected centre (pixels) and camera depth of the centre
     S m3[3];             // third row of T: hit depth z = m3 . (u, v, 1)
     S o;                 // opacity
-    S blur[3];           // anti-aliased: the waves' blur I - (I + S)^-1, S the footprint at the centre (else 0)
-    S s;                 // falloff exponent: 0 the Gaussian, > 0 the Beta kernel (falloff below)
+    S blur[3];           // anti-aliased: the kinds' blur I - (I + S)^-1, S the footprint at the centre (else 0)
+    S s;                 // falloff exponent: 0 the Gaussian, > 0 the Beta kernel (with_falloff below)
 };
 
-// Gradient slots of one surfel row: the pair's geometry and opacity, then the appearance block (see the appearance
-// section: base colour, waves, texels), [G_APPEARANCE, grad_width(K, TS)).
+// Gradient slots of one surfel row: the pair's geometry and opacity, then the appearance's blocks: every kind's dense
+// block in table order, then every kind's scatter block (see the appearance section), [G_APPEARANCE, grad_width).
 enum : int {
     G_C = 0,        // sum over pixels of dL/dc            (3)
     G_CX = 3,       // sum of (x - cx) dL/dc               (3)
@@ -63,33 +73,8 @@ enum : int {
     G_A = 19,       // dL/dA through the footprint's Jacobian (3; anti-aliased only)
     G_B = 22,       // dL/dB through the footprint's Jacobian (3; anti-aliased only)
     G_S = 25,       // dL/d falloff exponent                (1)
-    G_APPEARANCE = 26,  // the appearance block starts here
-    G_BASE = 26,    // dL/d base colour                    (3)
-    G_WAVES = 29,   // per wave: d k_x, d k_y, d phi (the wave's phase only), d a (3); then the texels (g_texels)
+    G_APPEARANCE = 26,  // the appearance's blocks start here
 };
-// Anti-aliased, a wave's gain exp(-k^T b k / 2) has the same blur b (the surfel's) at every pixel, so its gradients
-// into k and b are per-surfel factors times the sum over pixels of dL/d gain x gain, which is a . (d a):
-// finalize_grads applies them. The pixels only ever see a wave's gain times its amplitude.
-constexpr int G_PER_WAVE = 6;
-constexpr int TEX_CHANNELS = 4;  // a texel: r, g, b, alpha
-// The texels' slots, TEX_CHANNELS per texel in the texture's own order, after the K waves' (TS texels a side).
-SZ_HD constexpr int g_texels(int K) { return G_WAVES + G_PER_WAVE * K; }
-SZ_HD constexpr int grad_width(int K, int TS = 0) { return g_texels(K) + TEX_CHANNELS * TS * TS; }
-
-// Runs body(k) for the waves k < K. KMAX >= 0 promises K <= KMAX: the loop is unrolled with compile-time indices,
-// so per-wave arrays and gradient slots can live in registers (the CUDA backward's slot row).
-template <int KMAX, class F>
-SZ_HD void for_each_wave(int K, F&& body) {
-    if constexpr (KMAX < 0) {
-        for (int k = 0; k < K; ++k) body(k);
-    } else {
-#ifdef __CUDA_ARCH__
-#pragma unroll
-#endif
-        for (int k = 0; k < KMAX; ++k)
-            if (k < K) body(k);
-    }
-}
 
 // ---- small branch-free helpers (they must vectorise inside `omp simd` loops) ------------------------------------
 template <class S> SZ_HD S sabs(S x) { return x < S(0) ? -x : x; }
@@ -575,39 +560,55 @@ template <class S> SZ_HD S radd(S a, S b) { return a + b; }
 #endif
 
 // ---- the kernel falloff, a declared part of the appearance contract (common.falloff is its twin) ----------------
-// f(rho) over rho = u^2 + v^2 in sigmas squared (anti-aliased: the footprint's q): the Gaussian exp(-rho/2) where the
-// surfel's falloff exponent s is 0, else the Beta kernel (1 - s rho/2)_+^(1/s), 0 < s <= 1: Deformable Beta
-// Splatting's (1 - r^2)^b with b = 1/s and r^2 = s rho/2, 0 beyond rho = 2/s, the Gaussian again as s -> 0. BETA
-// picks the branch at compile time (one surfel at a time: its pixel loop stays branch-free).
-template <bool BETA, class S>
-SZ_HD S falloff(S rho, S s) {
-    if constexpr (!BETA) {
+// f(rho) over rho = u^2 + v^2 in sigmas squared (anti-aliased: the footprint's q), one struct per falloff: the Gaussian
+// exp(-rho/2) where the surfel's falloff exponent s is 0, else the Beta kernel (1 - s rho/2)_+^(1/s), 0 < s <= 1:
+// Deformable Beta Splatting's (1 - r^2)^b with b = 1/s and r^2 = s rho/2, 0 beyond rho = 2/s, the Gaussian again as
+// s -> 0. value(rho, s) is f; dlog(rho, s, d_rho, d_s) gives d ln f / d rho and d ln f / d s where f > 0.
+// with_falloff picks one per surfel, at compile time for its pairs: the pixel loops stay branch-free.
+struct GaussianFalloff {
+    template <class S>
+    SZ_HD static S value(S rho, S) {
         return sz_exp(rmul(S(-0.5), rho));
-    } else {
+    }
+    // s = 0: the Beta kernel's d ln f / d s series at its first term, -rho^2/8 (the Gaussian's pairs pay no more than
+    // that), so that a surfel can move from the Gaussian into the Beta family
+    template <class S>
+    SZ_HD static void dlog(S rho, S, S& d_rho, S& d_s) {
+        d_rho = S(-0.5);
+        d_s = S(-0.125) * rho * rho;
+    }
+};
+
+struct BetaFalloff {
+    template <class S>
+    SZ_HD static S value(S rho, S s) {
         const S x = rmul(rmul(S(0.5), s), rho);  // ln f = log1p(-x) / s: accurate for a small s, where w = 1 - x
         const S f = sz_exp(sz_log1m(x < S(1) ? x : S(0)) / s);  //   rounds to 1
         return x < S(1) ? f : S(0);
     }
-}
-
-// d ln f / d rho and d ln f / d s where f > 0: -1/(2w) and -ln(w)/s^2 - rho/(2 s w), w = 1 - x, x = s rho/2. The
-// second is a series where x is small (its two terms cancel): -(rho/2)^2 (1/2 + 2x/3 + 3x^2/4 + 4x^3/5), which at
-// s = 0 is -rho^2/8, the Gaussian's own: a surfel can move from the Gaussian into the Beta family.
-template <bool BETA, class S>
-SZ_HD void falloff_dlog(S rho, S s, S& d_rho, S& d_s) {
-    if constexpr (!BETA) {  // s = 0: the series' first term (the Gaussian's pairs pay no more than that)
-        d_rho = S(-0.5);
-        d_s = S(-0.125) * rho * rho;
-        return;
+    // -1/(2w) and -ln(w)/s^2 - rho/(2 s w), w = 1 - x, x = s rho/2. The second is a series where x is small (its two
+    // terms cancel): -(rho/2)^2 (1/2 + 2x/3 + 3x^2/4 + 4x^3/5), which at s = 0 is -rho^2/8, the Gaussian's own.
+    template <class S>
+    SZ_HD static void dlog(S rho, S s, S& d_rho, S& d_s) {
+        const S x = rmul(rmul(S(0.5), s), rho), h = S(0.5) * rho;
+        const S w = S(1) - x;
+        const S ws = w > S(1e-30) ? w : S(1e-30);
+        const S series = -(h * h) * (S(0.5) + x * (S(2.0 / 3.0) + x * (S(0.75) + x * S(0.8))));
+        const S ss = s > S(0) ? s : S(1);
+        const S closed = -sz_log1m(x < S(1) ? x : S(0)) / (ss * ss) - h / (ss * ws);
+        d_s = x < S(1e-2) ? series : closed;
+        d_rho = S(-0.5) / ws;
     }
-    const S x = rmul(rmul(S(0.5), s), rho), h = S(0.5) * rho;
-    const S w = S(1) - x;
-    const S ws = w > S(1e-30) ? w : S(1e-30);
-    const S series = -(h * h) * (S(0.5) + x * (S(2.0 / 3.0) + x * (S(0.75) + x * S(0.8))));
-    const S ss = s > S(0) ? s : S(1);
-    const S closed = -sz_log1m(x < S(1) ? x : S(0)) / (ss * ss) - h / (ss * ws);
-    d_s = x < S(1e-2) ? series : closed;
-    d_rho = S(-0.5) / ws;
+};
+
+// Calls body(GaussianFalloff{}) or body(BetaFalloff{}) for a surfel of falloff exponent s: the one place that branches
+// on a surfel's falloff (once per surfel, or per pair on a GPU, where every thread of a warp meets the same surfel).
+template <class S, class Body>
+SZ_HD void with_falloff(S s, Body&& body) {
+    if (s > S(0))
+        body(BetaFalloff{});
+    else
+        body(GaussianFalloff{});
 }
 
 // The pixel's ray against the surfel's plane: d = pixel - centre, c = h_x x h_y, whether the ray hits the plane and
@@ -644,7 +645,7 @@ SZ_HD S pair_alpha(const Settings& st, S raw, S z) {
     return z >= S(st.near) ? a : S(0);
 }
 
-template <bool BETA = false, class S>
+template <class F = GaussianFalloff, class S>
 SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
     const PixelRay<S> ray = pixel_ray(st, g, x, y);
     const S dx = ray.dx, dy = ray.dy, c0 = ray.c0, c1 = ray.c1, c2 = ray.c2, inv = ray.inv;
@@ -657,7 +658,7 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
     S u = use3 ? uu : S(0);
     S v = use3 ? vv : S(0);
     S z = use3 ? radd(radd(rmul(g.m3[0], u), rmul(g.m3[1], v)), g.m3[2]) : g.zc;
-    S ex = falloff<BETA>(rho, g.s);
+    S ex = F::value(rho, g.s);
     S raw = rmul(g.o, ex);
     e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
     e.u = u; e.v = v; e.z = z; e.rho = rho; e.ex = ex; e.raw = raw;
@@ -676,7 +677,7 @@ SZ_HD void eval_pair(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>
 // column x row products cancel: N00 = A0 c2 - A2 c0 = dy (A0 B2 - A2 B0) + (A0 C2 - A2 C0) depends on the row only,
 // N01 = dx (B0 A2 - B2 A0) + (B0 C2 - B2 C0) on the column only (N10, N11 alike), so a pixel loop pays one product
 // for each. P x and x^T P x are taken as adj(I + S) x / det: the division runs beside the products.
-template <bool BETA = false, class S>
+template <class F = GaussianFalloff, class S>
 SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
     const PixelRay<S> ray = pixel_ray(st, g, x, y);
     const S dx = ray.dx, dy = ray.dy, c0 = ray.c0, c1 = ray.c1, c2 = ray.c2, inv = ray.inv;
@@ -712,7 +713,7 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
     gain = hit ? gain : S(0);
     gain = keep ? gain : S(0);
     gain = linear ? gain : S(0);  // one comparison per select: combined conditions become branches (no vectors)
-    S ex = rmul(gain, falloff<BETA>(q, g.s));
+    S ex = rmul(gain, F::value(q, g.s));
     S raw = rmul(g.o, ex);
     e.dx = dx; e.dy = dy; e.c0 = c0; e.c1 = c1; e.c2 = c2;
     e.u = mu; e.v = mv; e.z = z; e.rho = q; e.ex = ex; e.raw = raw;
@@ -725,34 +726,109 @@ SZ_HD void eval_pair_filtered(const Settings& st, const Geom<S>& g, S x, S y, Pa
 // Either evaluation, by the settings (a branch every thread of a launch takes the same way).
 template <class S>
 SZ_HD void eval_pair_any(const Settings& st, const Geom<S>& g, S x, S y, PairEval<S>& e) {
+    // the filter outside, the falloff inside: the two falloffs' filtered pairs share their footprint's code
     if (st.pixel_filter > 0)
-        g.s > S(0) ? eval_pair_filtered<true>(st, g, x, y, e) : eval_pair_filtered<false>(st, g, x, y, e);
+        with_falloff(g.s, [&](auto falloff) SZ_INLINE_LAMBDA {
+            eval_pair_filtered<decltype(falloff)>(st, g, x, y, e);
+        });
     else
-        g.s > S(0) ? eval_pair<true>(st, g, x, y, e) : eval_pair<false>(st, g, x, y, e);
+        with_falloff(g.s, [&](auto falloff) SZ_INLINE_LAMBDA { eval_pair<decltype(falloff)>(st, g, x, y, e); });
 }
 
 // ---- appearance: what a surfel looks like at a pair ---------------------------------------------------------
 // An appearance gives, at the point (u, v) of the surfel where a pair's colour is taken (the ray's hit; (0, 0) where
 // the screen filter wins; anti-aliased the footprint's centre P x), an rgb colour and an opacity gain g(u, v) in
-// [0, 1] that multiplies o times the falloff. Its backward goes into its own block of slots, [G_APPEARANCE,
-// grad_width), and back to (u, v) (appearance_backward), and finalize_appearance maps the block to the fields'
-// gradients. Two kinds, summed (a surfel has either, both or neither):
-// - the wave bank: rgb = c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k) (g_k = 1, or anti-aliased the footprint's
-//   gain of wave k, wave_gain); opacity gain 1;
-// - the texture (TS > 0): TS x TS RGBA texels over (u, v) in [-TEXTURE_RADIUS, TEXTURE_RADIUS]^2, texel (r, c)
-//   centred at -R + (c + 1/2, r + 1/2) 2R/TS, sampled bilinearly and clamped to the edge outside; its rgb is added
-//   to the colour, its alpha is the opacity gain. Anti-aliased, the texture is prefiltered once per surfel
-//   (prefilter_texture): its deviation from its mean as the surfel shows it (weighted by the Gaussian falloff at the
-//   texel centres), per channel, times the footprint's gain at the texel grid's Nyquist frequency.
-// The colour is clamped at 0 after the sum (the clamp belongs to the blend, blend_backward_colour).
+// [0, 1] that multiplies o times the falloff. It is a composition of kinds (Appearance, at the end of this section):
+// their colours add up, clamped at 0 after the sum (the clamp belongs to the blend, blend_backward_colour), and their
+// gains multiply. Each kind is one struct in its own section below, with its twin in rasterizers/reference.py
+// (KIND_TWINS) and its fields in the Surfels table (splatzoo/types.py, `kind=`); it declares:
+//   - its fields: SZ_KIND_FIELD_MEMBERS over the list the generator writes for it (surfel_fields.h,
+//     SZ_KIND_FIELDS_<KIND>): a pointer to one surfel's row of each field, by the field's table name; Grads, the
+//     pointers v_<name> its gradients go to; bind_fields / bind_grads, which point them at surfel i;
+//   - bind(args, i, prepared): its fields and sizes for surfel i (prepared: its slice of the surfel's prepared row);
+//   - dense_slots(K), scatter_slots(K, T): its blocks of the slot row. Dense slots are accumulated through acc, the
+//     same ones in the same order at every pair (the CUDA warp sums and register row rely on it); scatter slots differ
+//     from pixel to pixel (acc.scatter: one atomic per lane);
+//   - prepared_width(K, T, filtered), prepare(blur, out): a per-surfel set-up that the prepare step makes once per
+//     render into the surfel's prepared row (the texture's prefilter), which bind then reads;
+//   - fold_values(K), fold_factors(K), fold(g, values, factors), unfold(row, dense): anti-aliased, the CPU loop lets
+//     a kind fold its per-surfel footprint factors into what the pixels read (the waves' gains into their amplitudes)
+//     once per (surfel, tile), with the blur left out of the pixels' calls: values holds the folded copies of its
+//     fields, factors what unfold then applies to its slots (two buffers: GCC vectorises the fold loop, and so
+//     rounds it, as it did when the waves' two arrays were separate);
+//   - Cache<KMAX>: what add_colour keeps of a pair for backward;
+//   - has_gain(), gain(u, v): its opacity gain (has_gain() false: none, and gain is never called);
+//   - add_colour<KMAX>(u, v, rgb, blur, cache): adds its rgb at (u, v) (blur: Geom::blur when anti-aliased and not
+//     folded, else nullptr) and returns its gain (1 without one);
+//   - backward<KMAX>(u, v, v_col, v_lngain, blur, cache, acc, dense, scatter, v_u, v_v): dL/d rgb (v_col, the
+//     clamp's gate applied) and dL/d ln g (v_lngain) -> its slots (its blocks start at dense and scatter) and
+//     dL/d(u, v) (added);
+//   - finalize(Gs, dense, scatter, filtered, b, v_blur, grads): its blocks of a summed slot row -> its fields'
+//     gradients; anti-aliased (b: the blur the pixels used) its footprint factors' gradients add into v_blur.
+// KMAX >= 0 promises that no surfel has more than KMAX waves (the wave bank unrolls its loop: compile-time slots).
+// Nothing outside a kind's section names it: the composition, the tile loops and the bindings take the kinds from the
+// generated SZ_APPEARANCE_KINDS list.
+
+// A kind's field members, from its generated list FIELDS (X(name, row), row in terms of the batch's K and T).
+#define SZ_KIND_POINTER(name, row) const S* name;
+#define SZ_KIND_GRADIENT(name, row) S* v_##name;
+#define SZ_KIND_BIND(name, row) name = a.name + i * int64_t(row);
+#define SZ_KIND_BIND_GRAD(name, row) v.v_##name = a.v_##name + i * int64_t(row);
+#define SZ_KIND_FIELD_MEMBERS(FIELDS)                                                                              \
+    FIELDS(SZ_KIND_POINTER)                                                                                        \
+    struct Grads {                                                                                                 \
+        FIELDS(SZ_KIND_GRADIENT)                                                                                   \
+    };                                                                                                             \
+    template <class Args>                                                                                          \
+    SZ_HD void bind_fields(const Args& a, int64_t i, int K, int T) {                                               \
+        (void)K;                                                                                                   \
+        (void)T;                                                                                                   \
+        FIELDS(SZ_KIND_BIND)                                                                                       \
+    }                                                                                                              \
+    template <class Args>                                                                                          \
+    SZ_HD static Grads bind_grads(const Args& a, int64_t i, int K, int T) {                                        \
+        (void)K;                                                                                                   \
+        (void)T;                                                                                                   \
+        Grads v;                                                                                                   \
+        FIELDS(SZ_KIND_BIND_GRAD)                                                                                  \
+        return v;                                                                                                  \
+    }
+
+// The pair's opacity gain into its alpha (after eval_pair*): ex and raw take the factor, the blend decision is made
+// again. The tile loops call it only for surfels whose appearance has a gain (Appearance::has_gain), so the others
+// keep their exact values.
 template <class S>
-struct Appearance {
-    const S *base, *wv, *wp, *wa;  // wave bank: base colour [3]; per wave k [K,2], phi [K], a [K,3]
-    int K;                         // waves in use
-    int row_K;                     // the batch's K: the slot row's layout (its texel slots follow K waves')
-    const S* tex;                  // texture [TS,TS,4] (anti-aliased: prefiltered); unread when TS = 0
-    int TS;                        // texels a side; 0: no texture
-};
+SZ_HD void apply_opacity_gain(const Settings& st, const Geom<S>& g, S gain, PairEval<S>& e) {
+    e.ex = rmul(e.ex, gain);
+    e.raw = rmul(g.o, e.ex);
+    e.alpha = pair_alpha(st, e.raw, e.z);
+}
+
+// ---- kind: the wave bank (kind 0; reference.WaveBankTwin) -------------------------------------------------------
+// rgb = c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k): g_k = 1, or anti-aliased the footprint's gain of wave k,
+// wave_gain; no opacity gain. Dense slots: dL/d c0 (3), then per wave d k_x, d k_y, d phi (the wave's phase only),
+// d a (3). Anti-aliased, a wave's gain exp(-k^T b k / 2) has the same blur b (the surfel's) at every pixel, so its
+// gradients into k and b are per-surfel factors times the sum over pixels of dL/d gain x gain, which is a . (d a):
+// finalize applies them. The pixels only ever see a wave's gain times its amplitude.
+constexpr int G_PER_WAVE = 6;
+// Waves per surfel whose sin/cos the backward keeps on the stack (more are recomputed, same values). On a GPU the
+// stack is local memory, still cheaper than recomputing (measured: K=4 backward 17.3 ms without, 14.4 ms with).
+constexpr int SINCOS_CACHE = 32;
+
+// Runs body(k) for the waves k < K. KMAX >= 0 promises K <= KMAX: the loop is unrolled with compile-time indices,
+// so per-wave arrays and gradient slots can live in registers (the CUDA backward's slot row).
+template <int KMAX, class F>
+SZ_HD void for_each_wave(int K, F&& body) {
+    if constexpr (KMAX < 0) {
+        for (int k = 0; k < K; ++k) body(k);
+    } else {
+#ifdef __CUDA_ARCH__
+#pragma unroll
+#endif
+        for (int k = 0; k < KMAX; ++k)
+            if (k < K) body(k);
+    }
+}
 
 // Footprint attenuation of wave (kx, ky) under the blur (b00, b01, b11): exp(-k^T b k / 2).
 template <class S>
@@ -761,7 +837,7 @@ SZ_HD S wave_gain(const S* blur, S kx, S ky) {
 }
 
 // Every wave's footprint gain for one anti-aliased surfel (its blur is the same at all its pixels): gains[k], and
-// the amplitudes times them, folded[3k + i] = gains[k] wa[3k + i], which a pixel loop uses in place of the gains.
+// the amplitudes times them, folded[3k + i] = gains[k] wa[3k + i].
 template <class S>
 SZ_HD void fold_gains(const Geom<S>& g, const S* wv, const S* wa, int K, S* gains, S* folded) {
     for (int k = 0; k < K; ++k) {
@@ -770,6 +846,158 @@ SZ_HD void fold_gains(const Geom<S>& g, const S* wv, const S* wa, int K, S* gain
     }
 }
 
+template <class S>
+struct WaveBank {
+    SZ_KIND_FIELD_MEMBERS(SZ_KIND_FIELDS_WAVE_BANK)  // base_color [3], wave_vectors [K,2], wave_phases [K],
+                                                     // wave_amplitudes [K,3]
+    int K;           // waves in use: the surfel's first K (Surfels.wave_counts)
+    int row_K;       // the batch's K: the rows' stride and the dense block's layout
+    const S* gains;  // folded (fold): each wave's footprint gain, which wave_amplitudes then carries; else nullptr
+
+    // each wave's sin, cos (times the footprint gain) and gain at the pair, for the backward (when K fits)
+    template <int KMAX>
+    struct Cache {
+        static constexpr int N = KMAX >= 0 ? (KMAX > 0 ? KMAX : 1) : SINCOS_CACHE;
+        S sn[N], cs[N], gain[N];
+    };
+    template <int KMAX>
+    SZ_HD bool caches(const Cache<KMAX>* c) const {
+        return c != nullptr && (KMAX >= 0 || K <= SINCOS_CACHE);
+    }
+
+    SZ_HD static constexpr int dense_slots(int K) { return 3 + G_PER_WAVE * K; }
+    SZ_HD static constexpr int scatter_slots(int, int) { return 0; }
+    SZ_HD static constexpr int prepared_width(int, int, bool) { return 0; }
+    SZ_HD static constexpr int fold_values(int K) { return 3 * K; }
+    SZ_HD static constexpr int fold_factors(int K) { return K; }
+    SZ_HD static constexpr bool has_gain() { return false; }
+    SZ_HD S gain(S, S) const { return S(1); }
+
+    template <class Args>
+    SZ_HD void bind(const Args& a, int64_t i, const S*) {
+        bind_fields(a, i, a.K, a.TS);
+        row_K = a.K;
+        K = a.wcount ? a.wcount[i] : a.K;
+        gains = nullptr;
+    }
+    SZ_HD void prepare(const S*, S*) const {}
+
+    // Every wave's footprint gain (g.blur) in factors and the amplitudes times them in values, which the pixels read
+    // in place of the amplitudes.
+    SZ_HD void fold(const Geom<S>& g, S* values, S* factors) {
+        fold_gains(g, wave_vectors, wave_amplitudes, K, factors, values);
+        wave_amplitudes = values;
+        gains = factors;
+    }
+    // d(gain a)/da = gain, on the amplitude slots of the pixels' sums
+    SZ_HD void unfold(S* row, int dense) const {
+        if (gains == nullptr) return;
+        for (int k = 0; k < K; ++k)
+            for (int j = 3; j < 6; ++j) row[dense + 3 + G_PER_WAVE * k + j] *= gains[k];
+    }
+
+    template <int KMAX>
+    SZ_HD S add_colour(S u, S v, S rgb[3], const S* blur, Cache<KMAX>* c) const {
+        const S *base = base_color, *wv = wave_vectors, *wp = wave_phases, *wa = wave_amplitudes;
+        const bool keep = caches(c);
+        S r = rgb[0] + base[0], gg = rgb[1] + base[1], b = rgb[2] + base[2];
+        for_each_wave<KMAX>(K, [&](int k) {
+            S sn, cs;
+            sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
+            if (blur) {
+                const S gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
+                if (keep) c->gain[k] = gk;
+                cs *= gk;  // sn is only kept for the backward, which multiplies by the gain itself
+            }
+            if (keep) {  // kept for the backward, which needs both
+                c->sn[k] = sn;
+                c->cs[k] = cs;
+            }
+            r += cs * wa[3 * k];
+            gg += cs * wa[3 * k + 1];
+            b += cs * wa[3 * k + 2];
+        });
+        rgb[0] = r;
+        rgb[1] = gg;
+        rgb[2] = b;
+        return S(1);
+    }
+
+    template <int KMAX, class Acc>
+    SZ_HD void backward(S u, S v, const S v_col[3], S, const S* blur, const Cache<KMAX>* c, Acc& acc, int dense, int,
+                        S& v_u, S& v_v) const {
+        const S *wv = wave_vectors, *wp = wave_phases, *wa = wave_amplitudes;
+        const bool cached = caches(c);
+        acc(dense + 0, v_col[0]);
+        acc(dense + 1, v_col[1]);
+        acc(dense + 2, v_col[2]);
+        const bool filtered = blur != nullptr;
+        for_each_wave<KMAX>(K, [&](int k) {
+            S sn, cs, gk = S(1);  // cs: the wave's factor in the colour, gain times cos
+            if (cached) {
+                sn = c->sn[k];
+                cs = c->cs[k];
+                if (filtered) gk = c->gain[k];
+            } else {
+                sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
+                if (filtered) {
+                    gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
+                    cs *= gk;
+                }
+            }
+            S v_cos = v_col[0] * wa[3 * k] + v_col[1] * wa[3 * k + 1] + v_col[2] * wa[3 * k + 2];
+            S v_phase = -sn * gk * v_cos;  // d/d(phase)
+            int o = dense + 3 + G_PER_WAVE * k;
+            acc(o + 0, v_phase * u);
+            acc(o + 1, v_phase * v);
+            acc(o + 2, v_phase);
+            acc(o + 3, cs * v_col[0]);
+            acc(o + 4, cs * v_col[1]);
+            acc(o + 5, cs * v_col[2]);
+            v_u += v_phase * wv[2 * k];
+            v_v += v_phase * wv[2 * k + 1];
+        });
+    }
+
+    // anti-aliased, the gains exp(-k^T b k / 2) with b the blur the pixels used (Geom::blur, rounded to S):
+    // d/dk = -gain b k, d/db = -gain k k^T / 2, times the summed dL/d gain x gain = a . (dL/da)
+    template <class R>
+    SZ_HD void finalize(const R* Gs, int dense, int, bool filtered, const double* b, double* v_blur,
+                        const Grads& v) const {
+        const int K = row_K;  // every wave's gradients (those beyond the surfel's count are 0)
+        const S *wv = wave_vectors, *wa = wave_amplitudes;
+        for (int i = 0; i < 3; ++i) v.v_base_color[i] = S(Gs[dense + i]);
+        for (int k = 0; k < K; ++k) {
+            const R* w = Gs + dense + 3 + G_PER_WAVE * k;
+            double v_kx = double(w[0]), v_ky = double(w[1]);
+            if (filtered) {
+                const double v_g = double(wa[3 * k]) * double(w[3]) + double(wa[3 * k + 1]) * double(w[4]) +
+                                   double(wa[3 * k + 2]) * double(w[5]);
+                const double kx = double(wv[2 * k]), ky = double(wv[2 * k + 1]);
+                v_kx -= v_g * (b[0] * kx + b[1] * ky);
+                v_ky -= v_g * (b[1] * kx + b[2] * ky);
+                v_blur[0] -= 0.5 * v_g * kx * kx;
+                v_blur[1] -= v_g * kx * ky;
+                v_blur[2] -= 0.5 * v_g * ky * ky;
+            }
+            v.v_wave_vectors[2 * k] = S(v_kx);
+            v.v_wave_vectors[2 * k + 1] = S(v_ky);
+            v.v_wave_phases[k] = S(w[2]);
+            v.v_wave_amplitudes[3 * k] = S(w[3]);
+            v.v_wave_amplitudes[3 * k + 1] = S(w[4]);
+            v.v_wave_amplitudes[3 * k + 2] = S(w[5]);
+        }
+    }
+};
+
+// ---- kind: the texture (reference.TextureTwin) ------------------------------------------------------------------
+// T x T RGBA texels over (u, v) in [-TEXTURE_RADIUS, TEXTURE_RADIUS]^2, texel (r, c) centred at -R + (c + 1/2,
+// r + 1/2) 2R/T, sampled bilinearly and clamped to the edge outside; its rgb is added to the colour, its alpha is the
+// opacity gain. Anti-aliased, the texture is prefiltered once per surfel (prepare: prefilter_texture): its deviation
+// from its mean as the surfel shows it (weighted by the Gaussian falloff at the texel centres), per channel, times the
+// footprint's gain at the texel grid's Nyquist frequency. Scatter slots: TEX_CHANNELS per texel, in the texture's own
+// order (dL/d the texture the pixels saw).
+constexpr int TEX_CHANNELS = 4;  // a texel: r, g, b, alpha
 // The texture's half-width in sigmas (splatzoo.types.TEXTURE_RADIUS).
 constexpr double TEXTURE_RADIUS = 3.0;
 
@@ -856,110 +1084,67 @@ SZ_HD S texel_lerp(const S* tex, const TexelSpot<S>& t, int c) {
     return radd(a, rmul(t.fv, radd(b, -a)));
 }
 
-// The opacity gain g(u, v): the texture's alpha, 1 without a texture.
 template <class S>
-SZ_HD S appearance_gain(const Appearance<S>& ap, S u, S v) {
-    if (ap.TS == 0) return S(1);
-    return texel_lerp(ap.tex, texel_spot(ap.TS, u, v), TEX_CHANNELS - 1);
-}
+struct Texture {
+    SZ_KIND_FIELD_MEMBERS(SZ_KIND_FIELDS_TEXTURE)  // texture [T,T,4], as given
+    const S* tex;  // the texels the pixels read: texture, or anti-aliased its prefiltered copy (prepare); unread at T 0
+    int TS;        // texels a side; 0: no texture
 
-// The pair's opacity gain into its alpha (after eval_pair*): ex and raw take the factor, the blend decision is made
-// again. The tile loops call it only for surfels with a gain (a texture), so the others keep their exact values.
-template <class S>
-SZ_HD void apply_opacity_gain(const Settings& st, const Geom<S>& g, S gain, PairEval<S>& e) {
-    e.ex = rmul(e.ex, gain);
-    e.raw = rmul(g.o, e.ex);
-    e.alpha = pair_alpha(st, e.raw, e.z);
-}
+    // the pair's opacity gain (the texture's alpha), for the backward
+    template <int KMAX>
+    struct Cache {
+        S gain;
+    };
 
-// rgb(u, v) before the clamp (pre) and after it (col). The waves' g_k = 1 (also when a caller has folded the gains
-// into the amplitudes: fold_gains), or, anti-aliased, wave_gain(blur, k_k) (blur: Geom::blur). sn_out, cs_out,
-// gain_out keep each wave's sin, gain times cos and gain for the backward. Returns the opacity gain at (u, v).
-template <int KMAX = -1, class S>
-SZ_HD S appearance_color(const Appearance<S>& ap, S u, S v, S col[3], S pre[3], const S* blur = nullptr,
-                         S* sn_out = nullptr, S* cs_out = nullptr, S* gain_out = nullptr) {
-    const S *base = ap.base, *wv = ap.wv, *wp = ap.wp, *wa = ap.wa;
-    S r = base[0], gg = base[1], b = base[2];
-    for_each_wave<KMAX>(ap.K, [&](int k) {
-        S sn, cs;
-        sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
-        if (blur) {
-            const S gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
-            if (gain_out) gain_out[k] = gk;
-            cs *= gk;  // sn is only kept for the backward, which multiplies by the gain itself
-        }
-        if (sn_out) {  // kept for the backward, which needs both
-            sn_out[k] = sn;
-            cs_out[k] = cs;
-        }
-        r += cs * wa[3 * k];
-        gg += cs * wa[3 * k + 1];
-        b += cs * wa[3 * k + 2];
-    });
-    S gain = S(1);
-    if (ap.TS > 0) {
-        const TexelSpot<S> t = texel_spot(ap.TS, u, v);
-        r += texel_lerp(ap.tex, t, 0);
-        gg += texel_lerp(ap.tex, t, 1);
-        b += texel_lerp(ap.tex, t, 2);
-        gain = texel_lerp(ap.tex, t, 3);
+    SZ_HD static constexpr int dense_slots(int) { return 0; }
+    SZ_HD static constexpr int scatter_slots(int, int T) { return TEX_CHANNELS * T * T; }
+    SZ_HD static constexpr int prepared_width(int, int T, bool filtered) { return filtered ? TEX_CHANNELS * T * T : 0; }
+    SZ_HD static constexpr int fold_values(int) { return 0; }
+    SZ_HD static constexpr int fold_factors(int) { return 0; }
+    SZ_HD bool has_gain() const { return TS > 0; }
+    SZ_HD S gain(S u, S v) const { return texel_lerp(tex, texel_spot(TS, u, v), TEX_CHANNELS - 1); }
+
+    template <class Args>
+    SZ_HD void bind(const Args& a, int64_t i, const S* prepared) {
+        bind_fields(a, i, a.K, a.TS);
+        TS = a.TS;
+        tex = TS == 0 ? nullptr : prepared ? prepared : texture;
     }
-    pre[0] = r; pre[1] = gg; pre[2] = b;
-    col[0] = smax(r, S(0)); col[1] = smax(gg, S(0)); col[2] = smax(b, S(0));
-    return gain;
-}
+    SZ_HD void prepare(const S* blur, S* out) const { prefilter_texture(blur, texture, TS, out); }
+    SZ_HD void fold(const Geom<S>&, S*, S*) {}
+    SZ_HD void unfold(S*, int) const {}
 
-// The colour's and the opacity gain's backward: v_col = dL/d pre (the clamp's gate applied), v_gain = dL/d gain.
-// Accumulates the appearance block's slots and returns dL/d(u, v) in v_u, v_v (added). The base colour and wave
-// slots go through acc (the same slots in the same order whatever the pair: the CUDA warp sums); the texels, which
-// differ from pixel to pixel, through acc.scatter. sn, cs, gains: appearance_color's sn_out, cs_out, gain_out, or
-// nullptr to recompute them (gains: anti-aliased without folded amplitudes, else nullptr).
-template <int KMAX = -1, class S, class Acc>
-SZ_HD void appearance_backward(const Appearance<S>& ap, S u, S v, const S v_col[3], S v_gain, const S* blur,
-                               const S* sn_c, const S* cs_c, const S* gain_c, Acc& acc, S& v_u, S& v_v) {
-    const S *wv = ap.wv, *wp = ap.wp, *wa = ap.wa;
-    acc(G_BASE + 0, v_col[0]);
-    acc(G_BASE + 1, v_col[1]);
-    acc(G_BASE + 2, v_col[2]);
-    const bool filtered = blur != nullptr;
-    for_each_wave<KMAX>(ap.K, [&](int k) {
-        S sn, cs, gk = S(1);  // cs: the wave's factor in the colour, gain times cos
-        if (sn_c) {
-            sn = sn_c[k];
-            cs = cs_c[k];
-            if (filtered) gk = gain_c[k];
-        } else {
-            sz_sincos(u * wv[2 * k] + v * wv[2 * k + 1] + wp[k], sn, cs);
-            if (filtered) {
-                gk = wave_gain(blur, wv[2 * k], wv[2 * k + 1]);
-                cs *= gk;
-            }
-        }
-        S v_cos = v_col[0] * wa[3 * k] + v_col[1] * wa[3 * k + 1] + v_col[2] * wa[3 * k + 2];
-        S v_phase = -sn * gk * v_cos;  // d/d(phase)
-        int o = G_WAVES + G_PER_WAVE * k;
-        acc(o + 0, v_phase * u);
-        acc(o + 1, v_phase * v);
-        acc(o + 2, v_phase);
-        acc(o + 3, cs * v_col[0]);
-        acc(o + 4, cs * v_col[1]);
-        acc(o + 5, cs * v_col[2]);
-        v_u += v_phase * wv[2 * k];
-        v_v += v_phase * wv[2 * k + 1];
-    });
-    if (ap.TS > 0) {
-        const TexelSpot<S> t = texel_spot(ap.TS, u, v);
+    template <int KMAX>
+    SZ_HD S add_colour(S u, S v, S rgb[3], const S*, Cache<KMAX>* c) const {
+        if (TS == 0) return S(1);
+        const TexelSpot<S> t = texel_spot(TS, u, v);
+        rgb[0] += texel_lerp(tex, t, 0);
+        rgb[1] += texel_lerp(tex, t, 1);
+        rgb[2] += texel_lerp(tex, t, 2);
+        const S g = texel_lerp(tex, t, 3);
+        if (c) c->gain = g;
+        return g;
+    }
+
+    // the texels, which differ from pixel to pixel, through acc.scatter; dL/dg = dL/d ln g / g (g > 0 wherever a pair
+    // contributes)
+    template <int KMAX, class Acc>
+    SZ_HD void backward(S u, S v, const S v_col[3], S v_lngain, const S*, const Cache<KMAX>* c, Acc& acc, int,
+                        int scatter, S& v_u, S& v_v) const {
+        if (TS == 0) return;
+        const TexelSpot<S> t = texel_spot(TS, u, v);
+        const S v_gain = v_lngain / (c ? c->gain : texel_lerp(tex, t, TEX_CHANNELS - 1));
         const S w00 = (S(1) - t.fu) * (S(1) - t.fv), w01 = t.fu * (S(1) - t.fv);
         const S w10 = (S(1) - t.fu) * t.fv, w11 = t.fu * t.fv;
-        const int o = g_texels(ap.row_K) + t.i00;
+        const int o = scatter + t.i00;
         S d_fu = S(0), d_fv = S(0);
-        for (int c = 0; c < TEX_CHANNELS; ++c) {
-            const S vc = c < 3 ? v_col[c] : v_gain;
-            acc.scatter(o + c, w00 * vc);
-            acc.scatter(o + c + t.du, w01 * vc);
-            acc.scatter(o + c + t.dv, w10 * vc);
-            acc.scatter(o + c + t.dv + t.du, w11 * vc);
-            const S* p = ap.tex + t.i00 + c;
+        for (int ch = 0; ch < TEX_CHANNELS; ++ch) {
+            const S vc = ch < 3 ? v_col[ch] : v_gain;
+            acc.scatter(o + ch, w00 * vc);
+            acc.scatter(o + ch + t.du, w01 * vc);
+            acc.scatter(o + ch + t.dv, w10 * vc);
+            acc.scatter(o + ch + t.dv + t.du, w11 * vc);
+            const S* p = tex + t.i00 + ch;
             const S a = p[0] + t.fu * (p[t.du] - p[0]);
             const S b = p[t.dv] + t.fu * (p[t.dv + t.du] - p[t.dv]);
             d_fu += vc * ((S(1) - t.fv) * (p[t.du] - p[0]) + t.fv * (p[t.dv + t.du] - p[t.dv]));
@@ -968,11 +1153,226 @@ SZ_HD void appearance_backward(const Appearance<S>& ap, S u, S v, const S v_col[
         v_u += d_fu * t.gu;
         v_v += d_fv * t.gv;
     }
-}
 
-// Waves per surfel whose sin/cos the backward keeps on the stack (more are recomputed, same values). On a GPU the
-// stack is local memory, still cheaper than recomputing (measured: K=4 backward 17.3 ms without, 14.4 ms with).
-constexpr int SINCOS_CACHE = 32;
+    // prefiltered: t' = mean + gain (t - mean), mean = sum_j w_j t_j, gain = exp(-k_n^2 (b00 + b11) / 4), so
+    // dL/dt_j = gain v_j + (1 - gain) w_j sum_i v_i and dL/dgain = sum_j v_j (t_j - mean)
+    template <class R>
+    SZ_HD void finalize(const R* Gs, int, int scatter, bool filtered, const double* b, double* v_blur,
+                        const Grads& v) const {
+        const int n = TS * TS;
+        const R* gt = Gs + scatter;  // dL/d (the texture the pixels saw)
+        if (n == 0) return;
+        if (!filtered) {
+            for (int j = 0; j < TEX_CHANNELS * n; ++j) v.v_texture[j] = S(gt[j]);
+            return;
+        }
+        const double kn2 = texture_nyquist_sq(TS);
+        const double gain = exp(-0.25 * kn2 * (b[0] + b[2]));
+        const double norm = texel_weight_norm(TS);
+        double v_gain = 0.0;
+        for (int c = 0; c < TEX_CHANNELS; ++c) {
+            double mean_t = 0.0, sum_v = 0.0;
+            for (int j = 0; j < n; ++j) {
+                mean_t += texel_weight(TS, j, norm) * double(texture[TEX_CHANNELS * j + c]);
+                sum_v += double(gt[TEX_CHANNELS * j + c]);
+            }
+            for (int j = 0; j < n; ++j) {
+                const double vj = double(gt[TEX_CHANNELS * j + c]);
+                v_gain += vj * (double(texture[TEX_CHANNELS * j + c]) - mean_t);
+                v.v_texture[TEX_CHANNELS * j + c] = S(gain * vj + (1.0 - gain) * texel_weight(TS, j, norm) * sum_v);
+            }
+        }
+        v_blur[0] -= 0.25 * kn2 * gain * v_gain;
+        v_blur[2] -= 0.25 * kn2 * gain * v_gain;
+    }
+};
+
+// ---- the composition of the kinds ------------------------------------------------------------------------------
+// One member per kind of the generated list (SZ_APPEARANCE_KINDS, table order); every method visits them in that
+// order. A kind's blocks of the slot row: its dense block after the dense blocks of the kinds before it (the first
+// at G_APPEARANCE), its scatter block after every dense block and the scatter blocks before it.
+template <class S>
+struct Appearance {
+#define SZ_KIND_MEMBER(Kind, member, FIELDS) Kind<S> member;
+    SZ_APPEARANCE_KINDS(SZ_KIND_MEMBER)
+#undef SZ_KIND_MEMBER
+    int K, T;  // the batch's sizes (wave count, texels a side): the slot row's layout
+
+    struct Grads {
+#define SZ_KIND_GRADS(Kind, member, FIELDS) typename Kind<S>::Grads member;
+        SZ_APPEARANCE_KINDS(SZ_KIND_GRADS)
+#undef SZ_KIND_GRADS
+    };
+    template <int KMAX>
+    struct Cache {
+#define SZ_KIND_CACHE(Kind, member, FIELDS) typename Kind<S>::template Cache<KMAX> member;
+        SZ_APPEARANCE_KINDS(SZ_KIND_CACHE)
+#undef SZ_KIND_CACHE
+    };
+
+    SZ_HD static constexpr int dense_slots(int K) {
+#define SZ_KIND_DENSE(Kind, member, FIELDS) +Kind<S>::dense_slots(K)
+        return 0 SZ_APPEARANCE_KINDS(SZ_KIND_DENSE);
+#undef SZ_KIND_DENSE
+    }
+    SZ_HD static constexpr int scatter_slots(int K, int T) {
+#define SZ_KIND_SCATTER(Kind, member, FIELDS) +Kind<S>::scatter_slots(K, T)
+        return 0 SZ_APPEARANCE_KINDS(SZ_KIND_SCATTER);
+#undef SZ_KIND_SCATTER
+    }
+    SZ_HD static constexpr int prepared_width(int K, int T, bool filtered) {
+#define SZ_KIND_PREPARED(Kind, member, FIELDS) +Kind<S>::prepared_width(K, T, filtered)
+        return 0 SZ_APPEARANCE_KINDS(SZ_KIND_PREPARED);
+#undef SZ_KIND_PREPARED
+    }
+    SZ_HD static constexpr int fold_values(int K) {
+#define SZ_KIND_FOLD_VALUES(Kind, member, FIELDS) +Kind<S>::fold_values(K)
+        return 0 SZ_APPEARANCE_KINDS(SZ_KIND_FOLD_VALUES);
+#undef SZ_KIND_FOLD_VALUES
+    }
+    SZ_HD static constexpr int fold_factors(int K) {
+#define SZ_KIND_FOLD_FACTORS(Kind, member, FIELDS) +Kind<S>::fold_factors(K)
+        return 0 SZ_APPEARANCE_KINDS(SZ_KIND_FOLD_FACTORS);
+#undef SZ_KIND_FOLD_FACTORS
+    }
+
+    // Surfel i's appearance as its pairs see it (Args: SurfelArgs): its rows of the fields, the waves it uses, its
+    // prepared row (anti-aliased: the prefiltered texture).
+    template <class Args>
+    SZ_HD static Appearance bind(const Args& a, int64_t i) {
+        Appearance ap;
+        ap.K = a.K;
+        ap.T = a.TS;
+        const bool filtered = a.st.pixel_filter > 0;
+        const S* prepared = a.prepared ? a.prepared + int64_t(a.prepared_width) * i : nullptr;
+#define SZ_KIND_BIND_KIND(Kind, member, FIELDS)                                                  \
+    {                                                                                            \
+        const int w = Kind<S>::prepared_width(a.K, a.TS, filtered);                              \
+        ap.member.bind(a, i, w > 0 ? prepared : nullptr);                                        \
+        if (prepared) prepared += w;                                                             \
+    }
+        SZ_APPEARANCE_KINDS(SZ_KIND_BIND_KIND)
+#undef SZ_KIND_BIND_KIND
+        return ap;
+    }
+    // Where the gradients of surfel i's fields go (Args: GradArgs; sizes: SurfelArgs).
+    template <class G, class Args>
+    SZ_HD static Grads bind_grads(const G& g, const Args& a, int64_t i) {
+        Grads v;
+#define SZ_KIND_BIND_GRADS(Kind, member, FIELDS) v.member = Kind<S>::bind_grads(g, i, a.K, a.TS);
+        SZ_APPEARANCE_KINDS(SZ_KIND_BIND_GRADS)
+#undef SZ_KIND_BIND_GRADS
+        return v;
+    }
+    // The prepare step of visible surfel i (its Geom's blur done): every kind's set-up into its prepared row.
+    template <class Args>
+    SZ_HD static void prepare(const Args& a, const S* blur, int64_t i) {
+        if (a.prepared == nullptr) return;
+        const Appearance ap = bind(a, i);
+        const bool filtered = a.st.pixel_filter > 0;
+        S* out = a.prepared + int64_t(a.prepared_width) * i;
+#define SZ_KIND_PREPARE(Kind, member, FIELDS)                                                    \
+    {                                                                                            \
+        const int w = Kind<S>::prepared_width(a.K, a.TS, filtered);                              \
+        if (w > 0) ap.member.prepare(blur, out);                                                 \
+        out += w;                                                                                \
+    }
+        SZ_APPEARANCE_KINDS(SZ_KIND_PREPARE)
+#undef SZ_KIND_PREPARE
+    }
+
+    // Anti-aliased, per (surfel, tile) on the CPU: the kinds fold their footprint factors (g: the surfel's Geom, its
+    // blur) into what the pixels read (values: fold_values(K) scalars, factors: fold_factors(K)); the pixels then pass
+    // no blur. unfold (row: the pair's slot sums) afterwards.
+    SZ_HD void fold(const Geom<S>& g, S* values, S* factors) {
+#define SZ_KIND_FOLD(Kind, member, FIELDS)                                                       \
+    member.fold(g, values, factors);                                                             \
+    values += Kind<S>::fold_values(K);                                                           \
+    factors += Kind<S>::fold_factors(K);
+        SZ_APPEARANCE_KINDS(SZ_KIND_FOLD)
+#undef SZ_KIND_FOLD
+    }
+    SZ_HD void unfold(S* row) const {
+        int dense = G_APPEARANCE;
+#define SZ_KIND_UNFOLD(Kind, member, FIELDS)                                                     \
+    member.unfold(row, dense);                                                                   \
+    dense += Kind<S>::dense_slots(K);
+        SZ_APPEARANCE_KINDS(SZ_KIND_UNFOLD)
+#undef SZ_KIND_UNFOLD
+    }
+
+    // Whether any kind has an opacity gain: the tile loops apply one (apply_opacity_gain) only then.
+    SZ_HD bool has_gain() const {
+        bool any = false;
+#define SZ_KIND_HAS_GAIN(Kind, member, FIELDS) any = any || member.has_gain();
+        SZ_APPEARANCE_KINDS(SZ_KIND_HAS_GAIN)
+#undef SZ_KIND_HAS_GAIN
+        return any;
+    }
+    // The opacity gain g(u, v): the product of the kinds' gains.
+    SZ_HD S gain(S u, S v) const {
+        S g = S(1);
+#define SZ_KIND_GAIN(Kind, member, FIELDS) \
+    if (member.has_gain()) g = g * member.gain(u, v);
+        SZ_APPEARANCE_KINDS(SZ_KIND_GAIN)
+#undef SZ_KIND_GAIN
+        return g;
+    }
+
+    // rgb(u, v) before the clamp (pre) and after it (col); returns the opacity gain at (u, v). blur: Geom::blur when
+    // anti-aliased and not folded, else nullptr. c: what the backward reuses, or nullptr.
+    template <int KMAX = -1>
+    SZ_HD S colour(S u, S v, S col[3], S pre[3], const S* blur = nullptr, Cache<KMAX>* c = nullptr) const {
+        S rgb[3] = {S(-0.0), S(-0.0), S(-0.0)};  // -0 + x is x for every x: the first addition folds away
+        S g = S(1);
+#define SZ_KIND_COLOUR(Kind, member, FIELDS) \
+    g = g * member.template add_colour<KMAX>(u, v, rgb, blur, c ? &c->member : nullptr);
+        SZ_APPEARANCE_KINDS(SZ_KIND_COLOUR)
+#undef SZ_KIND_COLOUR
+        for (int i = 0; i < 3; ++i) {
+            pre[i] = rgb[i];
+            col[i] = smax(rgb[i], S(0));
+        }
+        return g;
+    }
+
+    // The colour's and the opacity gain's backward: v_col = dL/d pre (the clamp's gate applied), v_lngain = dL/d ln g.
+    // Accumulates the kinds' slots (dense through acc, the same slots in the same order whatever the pair; scatter
+    // through acc.scatter) and returns dL/d(u, v) in v_u, v_v (added). c: colour's cache of the same pair.
+    template <int KMAX = -1, class Acc>
+    SZ_HD void backward(S u, S v, const S v_col[3], S v_lngain, const S* blur, const Cache<KMAX>* c, Acc& acc,
+                        S& v_u, S& v_v) const {
+        int dense = G_APPEARANCE, scatter = G_APPEARANCE + dense_slots(K);
+#define SZ_KIND_BACKWARD(Kind, member, FIELDS)                                                                     \
+    member.template backward<KMAX>(u, v, v_col, v_lngain, blur, c ? &c->member : nullptr, acc, dense, scatter, v_u, \
+                                   v_v);                                                                           \
+    dense += Kind<S>::dense_slots(K);                                                                              \
+    scatter += Kind<S>::scatter_slots(K, T);
+        SZ_APPEARANCE_KINDS(SZ_KIND_BACKWARD)
+#undef SZ_KIND_BACKWARD
+    }
+
+    // The appearance's blocks of a surfel's summed slot row -> the gradients of its fields (the appearance bound
+    // afresh: the fields as given, not folded). Anti-aliased (b: the blur the pixels used), the kinds' footprint
+    // factors add their gradients into v_blur (b00, b01, b11).
+    template <class R>
+    SZ_HD void finalize(const R* Gs, bool filtered, const double* b, double* v_blur, const Grads& v) const {
+        int dense = G_APPEARANCE, scatter = G_APPEARANCE + dense_slots(K);
+#define SZ_KIND_FINALIZE(Kind, member, FIELDS)                                 \
+    member.finalize(Gs, dense, scatter, filtered, b, v_blur, v.member);        \
+    dense += Kind<S>::dense_slots(K);                                          \
+    scatter += Kind<S>::scatter_slots(K, T);
+        SZ_APPEARANCE_KINDS(SZ_KIND_FINALIZE)
+#undef SZ_KIND_FINALIZE
+    }
+};
+
+// The width of a surfel's slot row (K waves, T texels a side): the geometry's slots and every kind's blocks.
+SZ_HD constexpr int grad_width(int K, int T = 0) {
+    return G_APPEARANCE + Appearance<float>::dense_slots(K) + Appearance<float>::scatter_slots(K, T);
+}
+// Its first slots, which every pair accumulates through acc (the geometry's and the kinds' dense blocks).
+SZ_HD constexpr int dense_width(int K) { return G_APPEARANCE + Appearance<float>::dense_slots(K); }
 
 // NDC depth of the distortion term, m(z) = f/(f-n) (1 - n/z), and dm/dz.
 template <class S> SZ_HD S ndc_depth(const Settings& st, S z) {
@@ -1074,12 +1474,12 @@ SZ_HD void pixel_bwd_init(PixelBwd<S>& p, S Tfinal, const S* tot, int last, int 
 // d(alpha, z, u, v) -> surfel slots (opacity, centre, centre depth, and c = h_x x h_y through u, v).
 // Every slot is accumulated on every call (zero where it does not apply), in a fixed order, so a caller may sum
 // each slot across threads (the CUDA warp reduction) with every thread taking part.
-template <bool BETA, class S, class Acc>
+template <class F, class S, class Acc>
 SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S v_alpha, S v_z, S v_u, S v_v,
                          Acc& acc) {
     const bool clamped = e.raw > S(st.alpha_max);  // torch.clamp passes the gradient only where input <= max
     S d_rho, d_s;
-    falloff_dlog<BETA>(e.rho, g.s, d_rho, d_s);
+    F::dlog(e.rho, g.s, d_rho, d_s);
     const S v_lnf = clamped ? S(0) : v_alpha * e.raw;  // dL/d ln f
     const S v_rho = v_lnf * d_rho;
     acc(G_O, clamped ? S(0) : v_alpha * e.ex);
@@ -1108,14 +1508,14 @@ SZ_HD void geom_backward(const Settings& st, const Geom<S>& g, const PairEval<S>
 // geom_backward of an anti-aliased pair (eval_pair_filtered): d(alpha, z, colour centre P x) -> the slots, through
 // P = (I + S)^-1, det(I + S), S = f J J^T, J = d(u, v)/d(pixel) and the hit x = (c0, c1) / c2. P's off-diagonal is
 // one parameter (it appears twice in the symmetric matrix).
-template <bool BETA, class S, class Acc>
+template <class F, class S, class Acc>
 SZ_HD void geom_backward_filtered(const Settings& st, const Geom<S>& g, const PairEval<S>& e, S v_alpha, S v_z,
                                   S v_mu, S v_mv, Acc& acc) {
     const bool clamped = e.raw > S(st.alpha_max);
     const S v_raw = clamped ? S(0) : v_alpha;
     acc(G_O, v_raw * e.ex);
     S d_q, d_s;
-    falloff_dlog<BETA>(e.rho, g.s, d_q, d_s);
+    F::dlog(e.rho, g.s, d_q, d_s);
     const S v_q = v_raw * e.raw * d_q;  // raw = o det^-1/2 f(q)
     acc(G_S, v_raw * e.raw * d_s);
     // z = m3 . (P x, 1)
@@ -1182,9 +1582,8 @@ struct PairCotangents {
 // Contributions must be visited in reverse blending order, each exactly once. e: the pair (alpha > 0 and
 // pos < last; with an opacity gain, e.raw is o f g as apply_opacity_gain left it); ap: this surfel's appearance; n its
 // normal; blur: Geom::blur when anti-aliased, else nullptr. Calls acc for the same slots in the same order whatever
-// the pair (and acc.scatter for the texels). A caller that folds the gains into the amplitudes (fold_gains) passes
-// the folded ones and no blur, and multiplies each wave's amplitude slots by its gain afterwards: every other slot
-// comes out the same.
+// the pair (and acc.scatter for the kinds' scatter slots). A caller that folded the appearance (Appearance::fold)
+// passes no blur and unfolds the summed slots afterwards (Appearance::unfold): every slot comes out the same.
 template <int KMAX = -1, class S, class Acc>
 SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p, const PairEval<S>& e, const S* n,
                                               const Appearance<S>& ap, int pos, Acc& acc, const S* blur) {
@@ -1193,12 +1592,9 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
     S Ti = p.T / oma;  // transmittance before this contribution
     S w = a * Ti;
     S col[3], pre[3];
-    // sin/cos (cos times the footprint gain) of each wave, computed once for the colour and reused for the derivatives
-    constexpr int CACHE = KMAX >= 0 ? (KMAX > 0 ? KMAX : 1) : SINCOS_CACHE;
-    S sn_cache[CACHE], cs_cache[CACHE], gain_cache[CACHE];
-    const bool cached = KMAX >= 0 || ap.K <= SINCOS_CACHE;
-    const S gain = appearance_color<KMAX>(ap, e.u, e.v, col, pre, blur, cached ? sn_cache : nullptr,
-                                          cached ? cs_cache : nullptr, cached ? gain_cache : nullptr);
+    // what the colour's backward reuses of its forward (each wave's sin and cos, ...)
+    typename Appearance<S>::template Cache<KMAX> cache;
+    ap.template colour<KMAX>(e.u, e.v, col, pre, blur, &cache);
     S m = ndc_depth(st, e.z);
     // dL/dw of this contribution (the distortion is quadratic in w: its derivative uses the pixel totals)
     S f = p.v_rgb[0] * col[0] + p.v_rgb[1] * col[1] + p.v_rgb[2] * col[2] + p.v_D * e.z +
@@ -1216,13 +1612,12 @@ SZ_HD PairCotangents<S> blend_backward_colour(const Settings& st, PixelBwd<S>& p
     // colour: the clamp at 0 passes the gradient where the value is >= 0 (torch.clamp)
     S v_col[3];
     for (int i = 0; i < 3; ++i) v_col[i] = pre[i] >= S(0) ? w * p.v_rgb[i] : S(0);
-    // the opacity gain: alpha = min(o f g, alpha_max), so dL/dg = dL/d alpha o f = dL/d alpha raw / g below the clamp
-    // (g > 0 wherever a pair contributes)
-    S v_gain = S(0);
-    if (ap.TS > 0) v_gain = e.raw > S(st.alpha_max) ? S(0) : v_alpha * e.raw / gain;
+    // the opacity gain: alpha = min(o f g, alpha_max), so dL/d ln g = dL/d alpha o f g = dL/d alpha raw below the
+    // clamp
+    S v_lngain = S(0);
+    if (ap.has_gain()) v_lngain = e.raw > S(st.alpha_max) ? S(0) : v_alpha * e.raw;
     S v_u = S(0), v_v = S(0);
-    appearance_backward<KMAX>(ap, e.u, e.v, v_col, v_gain, blur, cached ? sn_cache : nullptr,
-                              cached ? cs_cache : nullptr, cached ? gain_cache : nullptr, acc, v_u, v_v);
+    ap.template backward<KMAX>(e.u, e.v, v_col, v_lngain, blur, &cache, acc, v_u, v_v);
     return {v_alpha, v_z, v_u, v_v};
 }
 
@@ -1234,81 +1629,30 @@ SZ_HD void blend_backward(const Settings& st, PixelBwd<S>& p, const Geom<S>& g, 
     const bool filtered = st.pixel_filter > 0;
     const PairCotangents<S> v = blend_backward_colour<KMAX>(st, p, e, n, ap, pos, acc, filtered ? g.blur : nullptr);
     if (filtered)
-        g.s > S(0) ? geom_backward_filtered<true>(st, g, e, v.alpha, v.z, v.u, v.v, acc)
-                   : geom_backward_filtered<false>(st, g, e, v.alpha, v.z, v.u, v.v, acc);
+        with_falloff(g.s, [&](auto falloff) SZ_INLINE_LAMBDA {
+            geom_backward_filtered<decltype(falloff)>(st, g, e, v.alpha, v.z, v.u, v.v, acc);
+        });
     else  // where the filter wins u = v = 0 are constants (reference: torch.where), so v_u, v_v are dropped there
-        g.s > S(0) ? geom_backward<true>(st, g, e, v.alpha, v.z, v.u, v.v, acc)
-                   : geom_backward<false>(st, g, e, v.alpha, v.z, v.u, v.v, acc);
+        with_falloff(g.s, [&](auto falloff) SZ_INLINE_LAMBDA {
+            geom_backward<decltype(falloff)>(st, g, e, v.alpha, v.z, v.u, v.v, acc);
+        });
 }
 
-// The appearance block of a surfel's summed slot row -> the gradients of its appearance fields (ap: its fields as
-// given, the texture not prefiltered; ap.K = ap.row_K = the batch's K). Anti-aliased (b: the blur the pixels used),
-// the waves' and the texture's footprint gains add their gradients into v_blur (b00, b01, b11).
-template <class S, class R>
-SZ_HD void finalize_appearance(const Appearance<S>& ap, const R* Gs, bool filtered, const double* b, double* v_blur,
-                               S* v_base, S* v_wv, S* v_wp, S* v_wa, S* v_tex) {
-    const int K = ap.row_K;
-    const S *wv = ap.wv, *wa = ap.wa;
-    for (int i = 0; i < 3; ++i) v_base[i] = S(Gs[G_BASE + i]);
-    // anti-aliased, the gains exp(-k^T b k / 2) with b the blur the pixels used (Geom::blur, rounded to S):
-    // d/dk = -gain b k, d/db = -gain k k^T / 2, times the summed dL/d gain x gain = a . (dL/da)
-    for (int k = 0; k < K; ++k) {
-        const R* w = Gs + G_WAVES + G_PER_WAVE * k;
-        double v_kx = double(w[0]), v_ky = double(w[1]);
-        if (filtered) {
-            const double v_g = double(wa[3 * k]) * double(w[3]) + double(wa[3 * k + 1]) * double(w[4]) +
-                               double(wa[3 * k + 2]) * double(w[5]);
-            const double kx = double(wv[2 * k]), ky = double(wv[2 * k + 1]);
-            v_kx -= v_g * (b[0] * kx + b[1] * ky);
-            v_ky -= v_g * (b[1] * kx + b[2] * ky);
-            v_blur[0] -= 0.5 * v_g * kx * kx;
-            v_blur[1] -= v_g * kx * ky;
-            v_blur[2] -= 0.5 * v_g * ky * ky;
-        }
-        v_wv[2 * k] = S(v_kx);
-        v_wv[2 * k + 1] = S(v_ky);
-        v_wp[k] = S(w[2]);
-        v_wa[3 * k] = S(w[3]);
-        v_wa[3 * k + 1] = S(w[4]);
-        v_wa[3 * k + 2] = S(w[5]);
-    }
-    const int n = ap.TS * ap.TS;
-    const R* gt = Gs + g_texels(K);  // dL/d (the texture the pixels saw)
-    if (n == 0) return;
-    if (!filtered) {
-        for (int j = 0; j < TEX_CHANNELS * n; ++j) v_tex[j] = S(gt[j]);
-        return;
-    }
-    // prefiltered: t' = mean + gain (t - mean), mean = sum_j w_j t_j, gain = exp(-k_n^2 (b00 + b11) / 4), so
-    // dL/dt_j = gain v_j + (1 - gain) w_j sum_i v_i and dL/dgain = sum_j v_j (t_j - mean)
-    const double kn2 = texture_nyquist_sq(ap.TS);
-    const double gain = exp(-0.25 * kn2 * (b[0] + b[2]));
-    const double norm = texel_weight_norm(ap.TS);
-    double v_gain = 0.0;
-    for (int c = 0; c < TEX_CHANNELS; ++c) {
-        double mean_t = 0.0, sum_v = 0.0;
-        for (int j = 0; j < n; ++j) {
-            mean_t += texel_weight(ap.TS, j, norm) * double(ap.tex[TEX_CHANNELS * j + c]);
-            sum_v += double(gt[TEX_CHANNELS * j + c]);
-        }
-        for (int j = 0; j < n; ++j) {
-            const double vj = double(gt[TEX_CHANNELS * j + c]);
-            v_gain += vj * (double(ap.tex[TEX_CHANNELS * j + c]) - mean_t);
-            v_tex[TEX_CHANNELS * j + c] = S(gain * vj + (1.0 - gain) * texel_weight(ap.TS, j, norm) * sum_v);
-        }
-    }
-    v_blur[0] -= 0.25 * kn2 * gain * v_gain;
-    v_blur[2] -= 0.25 * kn2 * gain * v_gain;
-}
+// Where the gradients of one surfel's inputs go: the projection's outputs (T, centre, centre depth, normal), the
+// opacity fields and the appearance's fields.
+template <class S>
+struct SurfelGrads {
+    S *v_T, *v_center, *v_depth, *v_normal, *v_opacities, *v_falloff;
+    typename Appearance<S>::Grads appearance;
+};
 
 // A surfel's summed slot row -> gradients of the op inputs. Computed in double: it runs once per surfel.
 // A = m2 x m3, B = m3 x m1, C = m1 x m2 with c(x, y) = x A + y B + C, so dL/dA = sum x dL/dc = G_CX + cx G_C, etc.
-// Anti-aliased, the waves' and the texture's blur goes through centre_footprint, whose cz = C2 + cx A2 + cy B2 also
-// depends on the centre. ap: the surfel's appearance fields (finalize_appearance).
+// Anti-aliased, the kinds' blur goes through centre_footprint, whose cz = C2 + cx A2 + cy B2 also depends on the
+// centre. ap: the surfel's appearance, bound afresh (Appearance::finalize).
 template <class S, class R>
 SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, const Appearance<S>& ap, const R* Gs,
-                          S* v_T, S* v_center, S* v_depth, S* v_normal, S* v_opac, S* v_falloff, S* v_base,
-                          S* v_wv, S* v_wp, S* v_wa, S* v_tex) {
+                          const SurfelGrads<S>& v) {
     double m1[3], m2[3], m3[3], v_A[3], v_B[3], v_C[3];
     double cx = double(center[0]), cy = double(center[1]);
     // the slots hold gradients of the scaled A, B, C the pixels saw (prepare_geom)
@@ -1327,7 +1671,7 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
     if (filtered) fp = centre_footprint(st, T9, center);
     const double b[3] = {double(S(fp.blur[0])), double(S(fp.blur[1])), double(S(fp.blur[2]))};
     double v_blur[3] = {0.0, 0.0, 0.0};
-    finalize_appearance(ap, Gs, filtered, b, v_blur, v_base, v_wv, v_wp, v_wa, v_tex);
+    ap.finalize(Gs, filtered, b, v_blur, v.appearance);
     if (filtered) {
         const double v_cz = centre_blur_backward(st, fp, v_blur, v_A, v_B);
         v_C[2] += v_cz;
@@ -1350,16 +1694,16 @@ SZ_HD void finalize_grads(const Settings& st, const S* T9, const S* center, cons
     cross(m2, v_C, v_m1, 1.0);  // C = m1 x m2
     cross(v_C, m1, v_m2, 1.0);
     for (int i = 0; i < 3; ++i) {
-        v_T[i] = S(v_m1[i]);
-        v_T[3 + i] = S(v_m2[i]);
-        v_T[6 + i] = S(v_m3[i] + double(Gs[G_M3 + i]));
-        v_normal[i] = S(Gs[G_NORMAL + i]);
+        v.v_T[i] = S(v_m1[i]);
+        v.v_T[3 + i] = S(v_m2[i]);
+        v.v_T[6 + i] = S(v_m3[i] + double(Gs[G_M3 + i]));
+        v.v_normal[i] = S(Gs[G_NORMAL + i]);
     }
-    v_center[0] = S(v_cx);
-    v_center[1] = S(v_cy);
-    v_depth[0] = S(Gs[G_ZC]);
-    v_opac[0] = S(Gs[G_O]);
-    v_falloff[0] = S(Gs[G_S]);
+    v.v_center[0] = S(v_cx);
+    v.v_center[1] = S(v_cy);
+    v.v_depth[0] = S(Gs[G_ZC]);
+    v.v_opacities[0] = S(Gs[G_O]);
+    v.v_falloff[0] = S(Gs[G_S]);
 }
 
 // Pixel range [x0, x1] x [y0, y1] (inclusive, clamped to the image; empty if x0 > x1 or y0 > y1) of the pixel

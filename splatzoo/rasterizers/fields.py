@@ -9,7 +9,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..types import SURFEL_FIELDS, SURFEL_ROLES
+import re
+
+from ..types import BUILTIN_KINDS, SURFEL_FIELDS, SURFEL_ROLES
 
 HEADER = Path(__file__).resolve().parents[1] / "csrc" / "surfel_fields.h"
 MAX_RANK = 3  # trailing dimensions a field may have
@@ -18,6 +20,34 @@ MAX_RANK = 3  # trailing dimensions a field may have
 def pair_fields() -> list[str]:
     """The fields the tile loops read for every (surfel, pixel) pair: every role but geometry."""
     return [f.name for f in SURFEL_FIELDS if f.role != "geometry"]
+
+
+def kind_struct(kind: str) -> str:
+    """The C++ struct of appearance kind `kind` (snake_case in the table): its CamelCase, e.g. WaveBank."""
+    if not re.fullmatch(r"[a-z][a-z0-9]*(_[a-z0-9]+)*", kind):
+        raise ValueError(f"appearance kind {kind!r}: name kinds in snake_case (its C++ struct is the CamelCase)")
+    return "".join(w.capitalize() for w in kind.split("_"))
+
+
+def kind_fields(kind: str) -> list:
+    """The fields of appearance kind `kind`, in table order."""
+    return [f for f in SURFEL_FIELDS if f.kind == kind]
+
+
+def row_size(dims) -> str:
+    """A field's scalars per surfel as a C++ expression of the batch's K and T."""
+    return " * ".join(str(d) for d in dims) or "1"
+
+
+def kind_lists() -> str:
+    """The generated part of each kind's struct: its fields' pointer list, and the list of kinds."""
+    lines = []
+    for kind in BUILTIN_KINDS:
+        rows = " ".join(f"X({f.name}, {row_size(f.dims)})" for f in kind_fields(kind))
+        lines.append(f"#define SZ_KIND_FIELDS_{kind.upper()}(X) {rows}")
+    kinds = " ".join(f"X({kind_struct(k)}, {k}, SZ_KIND_FIELDS_{k.upper()})" for k in BUILTIN_KINDS)
+    lines.append(f"#define SZ_APPEARANCE_KINDS(X) {kinds}")
+    return "\n".join(lines)
 
 
 def header_text() -> str:
@@ -61,6 +91,10 @@ constexpr SurfelFieldInfo SURFEL_FIELD_INFO[NUM_SURFEL_FIELDS] = {{
 #define SZ_SURFEL_FIELDS(X) {names}
 // X(name) for the fields the tile loops read per (surfel, pixel) pair (every role but geometry)
 #define SZ_PAIR_FIELDS(X) {pair}
+// X(name, row) for the fields of each appearance kind, in table order; row: the field's scalars per surfel, in terms
+// of the batch's sizes K and T (names the expansion site defines). Each kind's struct (surfel_math.h) declares its
+// field pointers and gradient pointers from its list.
+{kind_lists()}
 """
 
 

@@ -3,6 +3,10 @@
 It is the oracle the native backends are tested against, so it favours clarity over speed. Work is split into
 screen rectangles small enough that (pixels x overlapping surfels) stays under a memory budget; each rectangle
 evaluates every (pixel, surfel) pair densely and composites with a cumulative product.
+
+The appearance is a composition of kinds, as in csrc/surfel_math.h: each kind of the Surfels table has its twin here
+(KIND_TWINS, the same maths as its section of the header). Their colours add up (clamped at 0), their opacity gains
+multiply.
 """
 from __future__ import annotations
 
@@ -10,7 +14,7 @@ import math
 
 import torch
 
-from ..types import TEXTURE_RADIUS, Camera, RenderOutput, Surfels
+from ..types import BUILTIN_KINDS, TEXTURE_RADIUS, Camera, RenderOutput, Surfels
 from .common import (LINEAR_LIMIT, SETTINGS, Projected, RasterSettings, background_tensor, centre_footprint, falloff,
                      ndc_depth, project)
 
@@ -125,10 +129,11 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         gain, q, (u, v) = footprint_filter(u, v, jac, st, hits & linear)
         blur = waves_blur(T, proj.center_px[idx], st)
         z = m3[:, 0] * u + m3[:, 1] * v + m3[:, 2]
-        tex = _texture_sample(s, idx, u, v, blur)  # [P,n,4] or None
+        looks = appearance(s, idx, u, v, blur)
         alpha = s.opacities[idx] * gain * falloff(q, s.falloff[idx])
-        if tex is not None:
-            alpha = alpha * tex[..., 3]
+        for _, g in looks:
+            if g is not None:
+                alpha = alpha * g
         alpha = torch.clamp(alpha, max=st.alpha_max)
         # the culling box bounds the support (common.FOOTPRINT_PAD): a pixel outside it is not shaded, as in the
         # tile loops, even where a nearly edge-on surfel's footprint would leave a faint fringe beyond it
@@ -145,10 +150,11 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         u = torch.where(use3d, u, torch.zeros_like(u))
         v = torch.where(use3d, v, torch.zeros_like(v))
         z = torch.where(use3d, m3[:, 0] * u + m3[:, 1] * v + m3[:, 2], proj.depth[idx].expand_as(u))
-        tex = _texture_sample(s, idx, u, v)
+        looks = appearance(s, idx, u, v)
         alpha = s.opacities[idx] * falloff(rho, s.falloff[idx])
-        if tex is not None:
-            alpha = alpha * tex[..., 3]
+        for _, g in looks:
+            if g is not None:
+                alpha = alpha * g
         alpha = torch.clamp(alpha, max=st.alpha_max)
         valid = (alpha >= st.alpha_min) & (z >= st.near)
     alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
@@ -158,7 +164,11 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
     kept = T_after >= st.t_min
     weight = torch.where(kept, alpha * T_before, torch.zeros_like(alpha))  # [P,n]
     T_final = torch.prod(torch.where(kept, 1 - alpha, torch.ones_like(alpha)), dim=1)
-    color = _appearance_color(s, idx, u, v, blur, tex)  # [P,n,3]
+    color = looks[0][0]
+    for rgb_k, _ in looks[1:]:
+        if rgb_k is not None:
+            color = color + rgb_k
+    color = torch.clamp(color, min=0)  # [P,n,3]
     rgb = (weight[..., None] * color).sum(1)
     acc = 1 - T_final
     z_safe = torch.where(valid, z, torch.ones_like(z))
@@ -263,17 +273,6 @@ def prefilter_texture(texture, blur):
     return mean + texture_gain(blur, texture.shape[1])[:, None, None, None] * (texture - mean)
 
 
-def _texture_sample(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None):
-    """The texture's bilinear RGBA at (u, v) for every pair -> [P,n,4], or None without a texture (T = 0).
-    Anti-aliased (blur given), the prefiltered texture."""
-    if s.texture_size == 0:
-        return None
-    tex = s.texture[idx]
-    if blur is not None:
-        tex = prefilter_texture(tex, blur)
-    return sample_texture(tex, u, v)
-
-
 def sample_texture(tex: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Textures [n,T,T,C] sampled bilinearly at (u, v) [P,n] (each texture's surfel's sigmas) -> [P,n,C].
 
@@ -302,17 +301,17 @@ def sample_texture(tex: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch
     return a + fv * (b - a)
 
 
-def _appearance_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None,
-                      tex=None) -> torch.Tensor:
-    """The appearance's colour for every pair -> [P,n,3]: max(0, c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k)
-    + texture rgb(u, v)). g_k = 1, or with blur = (b00, b01, b11) per surfel (waves_blur) exp(-k_k^T b k_k / 2);
-    tex: _texture_sample's [P,n,4] or None."""
+# ---- the appearance kinds' twins (csrc/surfel_math.h: one section each) ----------------------------------------------
+# A twin takes the batch, the surfels idx [n] of a shading pass, the points (u, v) [P,n] where the pairs' colours are
+# taken and, anti-aliased, the blur (b00, b01, b11) per surfel (waves_blur; else None), and returns (rgb [P,n,3] or
+# None, opacity gain [P,n] or None). The first kind's rgb must not be None (the wave bank's holds the base colour).
+
+def wave_bank_twin(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None):
+    """The wave bank (csrc/surfel_math.h WaveBank): c0 + sum_k a_k g_k cos(k_k . (u, v) + phi_k), no opacity gain.
+    g_k = 1, or with blur = (b00, b01, b11) per surfel exp(-k_k^T b k_k / 2)."""
     base = s.base_color[idx]  # [n,3]
     if s.num_waves == 0:
-        color = base.expand(u.shape[0], -1, -1)
-        if tex is not None:
-            color = color + tex[..., :3]
-        return torch.clamp(color, min=0)
+        return base.expand(u.shape[0], -1, -1), None
     k = s.wave_vectors[idx]  # [n,K,2]
     phase = u[..., None] * k[:, :, 0] + v[..., None] * k[:, :, 1] + s.wave_phases[idx]  # [P,n,K]
     amp = s.wave_amplitudes[idx]  # [n,K,3]
@@ -326,7 +325,41 @@ def _appearance_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.T
         b00, b01, b11 = (b[..., None] for b in blur)
         kx, ky = k[:, :, 0], k[:, :, 1]
         wave = wave * torch.exp(-0.5 * (b00 * kx * kx + 2 * b01 * kx * ky + b11 * ky * ky))
-    color = base + torch.einsum("pnk,nkc->pnc", wave, amp)
+    return base + torch.einsum("pnk,nkc->pnc", wave, amp), None
+
+
+def texture_twin(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None):
+    """The texture (csrc/surfel_math.h Texture): its bilinear RGBA at (u, v), rgb added to the colour, alpha the opacity
+    gain; nothing without one (T = 0). Anti-aliased (blur given), the prefiltered texture."""
+    if s.texture_size == 0:
+        return None, None
+    tex = s.texture[idx]
+    if blur is not None:
+        tex = prefilter_texture(tex, blur)
+    sample = sample_texture(tex, u, v)  # [P,n,4]
+    return sample[..., :3], sample[..., 3]
+
+
+# Each kind of the Surfels table (splatzoo.types.BUILTIN_KINDS) -> its twin; a test holds the two lists equal.
+KIND_TWINS = {"wave_bank": wave_bank_twin, "texture": texture_twin}
+
+
+def appearance(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None) -> list:
+    """(rgb, gain) of every kind at the pairs (surfels idx [n], points (u, v) [P,n]), in table order."""
+    return [KIND_TWINS[kind](s, idx, u, v, blur) for kind in BUILTIN_KINDS]
+
+
+def _texture_sample(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None):
+    """The texture's RGBA at (u, v) [P,n,4] (texture_twin's rgb and gain in one tensor), or None without one."""
+    rgb, gain = texture_twin(s, idx, u, v, blur)
+    return None if rgb is None else torch.cat([rgb, gain[..., None]], -1)
+
+
+def _appearance_color(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None,
+                      tex=None) -> torch.Tensor:
+    """The clamped colour [P,n,3] of the wave bank plus tex's rgb (tex: _texture_sample's, or None), as the
+    reference shades the table's kinds."""
+    color, _ = wave_bank_twin(s, idx, u, v, blur)
     if tex is not None:
         color = color + tex[..., :3]
     return torch.clamp(color, min=0)
