@@ -146,3 +146,61 @@ MODELS: Registry[ModelSpec] = Registry("model", entry_point_group="splatzoo.mode
 def register_model(spec: ModelSpec) -> ModelSpec:
     """Register a built-in (or programmatic) model spec."""
     return MODELS.register(spec.name, spec)
+
+
+@dataclass(frozen=True)
+class AppearanceKindSpec:
+    """A research appearance kind written in Python: the plugin contract of the `splatzoo.appearance_kinds` entry
+    points (or register_appearance_kind), rendered and differentiated (by autograd) by the reference backend only.
+
+    fn(u, v, view_dirs, params) -> (rgb, gain), per (pixel, surfel) pair of one shading pass:
+      u, v       [P,n]    the point of the surfel where the pair's colour is taken, in sigmas (the ray's hit; (0, 0)
+                          where the screen filter wins; anti-aliased, the pixel footprint's centre);
+      view_dirs  [P,n,3]  unit world direction of the pixel's ray (from the camera through the pixel: towards the hit);
+      params     [n,*params]  the surfels' rows of Surfels.appearance_params;
+      rgb        [P,n,3]  added to the colour of the table's kinds (the sum is clamped at 0);
+      gain       [P,n] in [0, 1], or None (1): multiplies the opacity (clamped into [0, 1]: a gain never grows a
+                          surfel past the screen box of its support).
+    Plain differentiable torch code; it must not mix pairs (each output entry depends on its own pair only).
+    params: the per-surfel parameter shape. A built-in kind's name (splatzoo.types.BUILTIN_KINDS) is refused.
+    """
+
+    name: str
+    fn: Callable
+    params: tuple
+    description: str = ""
+    api_version: int = API_VERSION
+
+
+def _validate_appearance_kind(obj: Any, name: str) -> AppearanceKindSpec:
+    from .types import BUILTIN_KINDS
+
+    if callable(obj) and not isinstance(obj, (AppearanceKindSpec, type)):
+        obj = obj()
+    if not isinstance(obj, AppearanceKindSpec):
+        raise PluginError(f"entry point must name a splatzoo.registry.AppearanceKindSpec, got {type(obj).__name__}")
+    if obj.api_version != API_VERSION:
+        raise PluginError(f"plugin targets splatzoo model API {obj.api_version}, this splatzoo has {API_VERSION}")
+    if obj.name != name:
+        raise PluginError(f"entry point name {name!r} differs from the spec's name {obj.name!r}")
+    if name in BUILTIN_KINDS:
+        raise PluginError(f"{name!r} is a built-in appearance kind (a section of csrc/surfel_math.h); the plugin must "
+                          "use another name")
+    if not callable(obj.fn):
+        raise PluginError(f"appearance kind {name!r}: fn must be callable, got {type(obj.fn).__name__}")
+    params = tuple(obj.params) if isinstance(obj.params, (tuple, list)) else (obj.params,)
+    if not all(isinstance(d, int) and not isinstance(d, bool) and d >= 1 for d in params):
+        raise PluginError(f"appearance kind {name!r}: params must be the per-surfel parameter shape, positive "
+                          f"integers, got {obj.params!r}")
+    return obj if params == obj.params else AppearanceKindSpec(obj.name, obj.fn, params, obj.description,
+                                                               obj.api_version)
+
+
+APPEARANCE_KINDS: Registry[AppearanceKindSpec] = Registry("appearance kind",
+                                                          entry_point_group="splatzoo.appearance_kinds",
+                                                          validate=_validate_appearance_kind)
+
+
+def register_appearance_kind(spec: AppearanceKindSpec) -> AppearanceKindSpec:
+    """Register a Python appearance kind from code (a notebook, a test); plugins use the entry-point group."""
+    return APPEARANCE_KINDS.register(spec.name, _validate_appearance_kind(spec, spec.name))

@@ -179,6 +179,11 @@ class Surfels:
     wave_counts [N] integer or None: surfel i uses only its first wave_counts[i] waves; the others give no colour
     and no gradient, and the native rasterizers skip them (None: all K waves are used). Models with a per-surfel
     number of waves pack the active ones to the front.
+    appearance_kind, appearance_params [N,...]: a research appearance kind written in Python, by its registered name
+    (splatzoo.registry.APPEARANCE_KINDS: a plugin's `splatzoo.appearance_kinds` entry point), and each surfel's
+    parameters for it (the shape its spec declares). Its rgb adds to the colour of the table's kinds and its opacity
+    gain multiplies theirs. Only the reference backend renders it (autograd gives its gradients); the native backends
+    refuse it by name until it has its own section in csrc/surfel_math.h. None: the table's kinds only.
     """
 
     means: torch.Tensor = surfel_field(3, role="geometry", doc="centre in world space",
@@ -203,6 +208,8 @@ class Surfels:
                                                 "[-TEXTURE_RADIUS, TEXTURE_RADIUS]^2 sigmas: rgb added to the colour, "
                                                 "alpha times the opacity", valid=TEXTURE_VALID, optional=True)
     wave_counts: torch.Tensor | None = None
+    appearance_kind: str | None = None
+    appearance_params: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.opacities, torch.Tensor):
@@ -242,11 +249,14 @@ class Surfels:
         return {f.name: getattr(self, f.name) for f in SURFEL_FIELDS}
 
     def map(self, fn, counts_fn=None) -> "Surfels":
-        """Apply `fn` to the floating-point fields; wave_counts goes through `counts_fn` (kept as is if None)."""
+        """Apply `fn` to the floating-point fields (and a Python kind's appearance_params); wave_counts goes through
+        `counts_fn` (kept as is if None)."""
         counts = self.wave_counts
         if counts is not None and counts_fn is not None:
             counts = counts_fn(counts)
-        return Surfels(**{k: fn(v) for k, v in self.tensors().items()}, wave_counts=counts)
+        params = self.appearance_params
+        return Surfels(**{k: fn(v) for k, v in self.tensors().items()}, wave_counts=counts,
+                       appearance_kind=self.appearance_kind, appearance_params=None if params is None else fn(params))
 
     def to(self, device=None, dtype=None) -> "Surfels":
         # counts move with the surfels but stay integers
@@ -303,7 +313,30 @@ class Surfels:
             lo, hi = torch.stack([c.min(), c.max()]).tolist() if n else (0, 0)
             if lo < 0 or hi > k:
                 raise ShapeError(f"Surfels.wave_counts must lie in [0, K={k}], got values in [{lo}, {hi}]")
+        self._validate_python_kind(n, dtype, device)
         return self
+
+    def _validate_python_kind(self, n: int, dtype, device) -> None:
+        kind, params = self.appearance_kind, self.appearance_params
+        if kind is None:
+            if params is not None:
+                raise ShapeError("Surfels.appearance_params is set but appearance_kind is None; name the appearance "
+                                 "kind the parameters are for")
+            return
+        from .registry import APPEARANCE_KINDS
+
+        spec = APPEARANCE_KINDS.get(kind)  # an unknown name lists the known ones
+        shape = (n, *spec.params)
+        if not isinstance(params, torch.Tensor) or tuple(params.shape) != shape:
+            got = list(params.shape) if isinstance(params, torch.Tensor) else type(params).__name__
+            raise ShapeError(f"Surfels.appearance_params of the appearance kind {kind!r} must have shape "
+                             f"[N,{','.join(map(str, spec.params))}] (N={n}), got {got}")
+        if params.dtype != dtype or params.device != device:
+            raise ShapeError(f"Surfels.appearance_params is {params.dtype} on {params.device}; every field must be "
+                             f"{dtype} on {device}")
+        if not bool(torch.isfinite(params).all()):
+            raise ShapeError(f"Surfels.appearance_params (appearance kind {kind!r}) contains NaN or Inf values; check "
+                             "the model parameters that produced it")
 
 
 @dataclass(frozen=True)
@@ -345,7 +378,7 @@ SURFEL_FIELDS: tuple[SurfelField, ...] = tuple(
                 f.metadata["kind"], f.default is None)
     for f in fields(Surfels) if "dims" in f.metadata)
 # The appearance kinds of the table, in table order: each has its section in csrc/surfel_math.h and its twin in
-# rasterizers/reference.py, and every backend renders it.
+# rasterizers/reference.py, and every backend renders it. (A Python kind, Surfels.appearance_kind, is not among them.)
 BUILTIN_KINDS: tuple[str, ...] = tuple(dict.fromkeys(f.kind for f in SURFEL_FIELDS if f.kind))
 
 

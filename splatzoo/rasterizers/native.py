@@ -320,13 +320,29 @@ def settings_struct(C, settings: RasterSettings):
     return _settings_cache[key]
 
 
+def refuse_python_kind(kind: str, backend: str) -> None:
+    """A Python appearance kind (Surfels.appearance_kind) has no C++ section: the native backends refuse it by name."""
+    from ..errors import SplatzooError
+    from ..registry import APPEARANCE_KINDS
+
+    origin = next((e.origin for e in APPEARANCE_KINDS.entries() if e.name == kind), "registered in Python")
+    raise SplatzooError(
+        f"the {backend} backend cannot render the appearance kind {kind!r} ({origin}): it is written in Python, and "
+        "only the reference backend renders and differentiates Python kinds. Use --backend reference (backend="
+        "'reference'), or give the kind its own section in splatzoo/csrc/surfel_math.h with its rows in the Surfels "
+        "field table and its twin in rasterizers/reference.py (README, 'Plugins'), after which every backend renders "
+        "it")
+
+
 def render(surfels: Surfels, camera: Camera, background=None, settings: RasterSettings | None = None, *,
            build: str = "cpu", emulated: bool = False, image_only: bool = False) -> RenderOutput:
     """Render with the native tile rasterizer of `build` ("cpu" or "cuda"); same contract and maths as
     rasterize_reference. emulated=True runs the CUDA kernels under the host emulation (CPU tensors).
     image_only=True: rgb and alpha only, outside autograd, with no state kept for a backward (to look at)."""
-    C = load(build)
     s = surfels
+    if s.appearance_kind is not None:
+        refuse_python_kind(s.appearance_kind, "cuda-emulated" if emulated else build)
+    C = load(build)
     want = "cuda" if build == "cuda" else "cpu"
     if s.means.device.type != want:
         raise BackendUnavailableError(f"this rasterizer needs surfels on the {want} device, got {s.means.device}; "

@@ -5,8 +5,9 @@ screen rectangles small enough that (pixels x overlapping surfels) stays under a
 evaluates every (pixel, surfel) pair densely and composites with a cumulative product.
 
 The appearance is a composition of kinds, as in csrc/surfel_math.h: each kind of the Surfels table has its twin here
-(KIND_TWINS, the same maths as its section of the header). Their colours add up (clamped at 0), their opacity gains
-multiply.
+(KIND_TWINS, the same maths as its section of the header), and a Python kind (Surfels.appearance_kind, a plugin's
+registered function) is one more, which only this backend renders. Their colours add up (clamped at 0), their
+opacity gains multiply.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import math
 
 import torch
 
+from ..errors import ShapeError
 from ..types import BUILTIN_KINDS, TEXTURE_RADIUS, Camera, RenderOutput, Surfels
 from .common import (LINEAR_LIMIT, SETTINGS, Projected, RasterSettings, background_tensor, centre_footprint, falloff,
                      ndc_depth, project)
@@ -42,6 +44,8 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, setti
     pieces = []  # (x0, x1, y0, y1, dict of [h,w,...] tensors)
     stack = [(0, W, 0, H, order, boxes)]
     waves = max(1, s.num_waves) + (4 if s.texture_size else 0)
+    if s.appearance_kind is not None:
+        waves += max(4, math.prod(s.appearance_params.shape[1:]))
     while stack:
         x0, x1, y0, y1, idx, bx = stack.pop()
         keep = (bx[:, 2] >= x0 + 0.5) & (bx[:, 0] <= x1 - 0.5) & (bx[:, 3] >= y0 + 0.5) & (bx[:, 1] <= y1 - 0.5)
@@ -57,7 +61,7 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, setti
                 ym = (y0 + y1) // 2
                 stack += [(x0, x1, y0, ym, idx, bx), (x0, x1, ym, y1, idx, bx)]
             continue
-        pieces.append((x0, x1, y0, y1, _shade_rect(s, proj, idx, x0, x1, y0, y1, settings)))
+        pieces.append((x0, x1, y0, y1, _shade_rect(s, proj, idx, x0, x1, y0, y1, settings, cam)))
     if not pieces:
         return _finish(_attached(out, s), bg)
     # assemble without in-place writes into tensors autograd needs: pad each piece to full size and sum
@@ -74,7 +78,10 @@ def rasterize_reference(surfels: Surfels, camera: Camera, background=None, setti
 def _attached(out: dict, s: Surfels) -> dict:
     """A render that draws nothing, tied to the surfels with zero gradients (as the native backends return): a loss
     over it can be backpropagated like any other."""
-    zero = sum(t.sum() for t in s.tensors().values()) * 0  # the fields are finite (Surfels.validate)
+    tensors = list(s.tensors().values())
+    if s.appearance_params is not None:
+        tensors.append(s.appearance_params)
+    zero = sum(t.sum() for t in tensors) * 0  # the fields are finite (Surfels.validate)
     return {k: v + zero for k, v in out.items()}
 
 
@@ -92,7 +99,7 @@ def _depth_order(proj: Projected) -> torch.Tensor:
 
 
 def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int, y0: int, y1: int,
-                st: RasterSettings) -> dict:
+                st: RasterSettings, cam: Camera) -> dict:
     """Composite surfels `idx` (front to back) over the pixels of one rectangle; values before background."""
     dtype, device = s.means.dtype, s.means.device
     h, w = y1 - y0, x1 - x0
@@ -129,7 +136,7 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         gain, q, (u, v) = footprint_filter(u, v, jac, st, hits & linear)
         blur = waves_blur(T, proj.center_px[idx], st)
         z = m3[:, 0] * u + m3[:, 1] * v + m3[:, 2]
-        looks = appearance(s, idx, u, v, blur)
+        looks = appearance(s, idx, u, v, blur, px, py, cam)
         alpha = s.opacities[idx] * gain * falloff(q, s.falloff[idx])
         for _, g in looks:
             if g is not None:
@@ -150,7 +157,7 @@ def _shade_rect(s: Surfels, proj: Projected, idx: torch.Tensor, x0: int, x1: int
         u = torch.where(use3d, u, torch.zeros_like(u))
         v = torch.where(use3d, v, torch.zeros_like(v))
         z = torch.where(use3d, m3[:, 0] * u + m3[:, 1] * v + m3[:, 2], proj.depth[idx].expand_as(u))
-        looks = appearance(s, idx, u, v)
+        looks = appearance(s, idx, u, v, None, px, py, cam)
         alpha = s.opacities[idx] * falloff(rho, s.falloff[idx])
         for _, g in looks:
             if g is not None:
@@ -344,9 +351,46 @@ def texture_twin(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor
 KIND_TWINS = {"wave_bank": wave_bank_twin, "texture": texture_twin}
 
 
-def appearance(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None) -> list:
-    """(rgb, gain) of every kind at the pairs (surfels idx [n], points (u, v) [P,n]), in table order."""
-    return [KIND_TWINS[kind](s, idx, u, v, blur) for kind in BUILTIN_KINDS]
+def view_directions(px: torch.Tensor, py: torch.Tensor, cam: Camera, dtype) -> torch.Tensor:
+    """Unit world directions [P,1,3] of the rays through pixel centres (px, py) [P,1] (from the camera)."""
+    cam64 = cam.to(dtype=torch.float64)
+    ray = torch.stack([px.double(), py.double(), torch.ones_like(px, dtype=torch.float64)], -1)  # [P,1,3]
+    d = ray @ torch.linalg.inv(cam64.K).T @ cam64.R  # R^T K^-1 (x, y, 1), as rows
+    return (d / d.norm(dim=-1, keepdim=True)).to(dtype)
+
+
+def python_kind_twin(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, px, py, cam: Camera):
+    """A Python kind (Surfels.appearance_kind, splatzoo.registry.APPEARANCE_KINDS): its function at every pair, its
+    output checked and its gain clamped into [0, 1]. Anti-aliased, it is evaluated at the footprint's centre and not
+    prefiltered."""
+    from ..registry import APPEARANCE_KINDS
+
+    spec = APPEARANCE_KINDS.get(s.appearance_kind)
+    dirs = view_directions(px, py, cam, u.dtype).to(u.device).expand(*u.shape, 3)
+    out = spec.fn(u, v, dirs, s.appearance_params[idx])
+    if not (isinstance(out, tuple) and len(out) == 2):
+        raise ShapeError(f"appearance kind {spec.name!r}: its function must return (rgb, gain), got "
+                         f"{type(out).__name__}")
+    rgb, gain = out
+    P, n = u.shape
+    if not isinstance(rgb, torch.Tensor) or tuple(rgb.shape) != (P, n, 3):
+        raise ShapeError(f"appearance kind {spec.name!r}: rgb must be [P,n,3] = [{P},{n},3], got "
+                         f"{list(rgb.shape) if isinstance(rgb, torch.Tensor) else type(rgb).__name__}")
+    if gain is not None:
+        if not isinstance(gain, torch.Tensor) or tuple(gain.shape) != (P, n):
+            raise ShapeError(f"appearance kind {spec.name!r}: gain must be [P,n] = [{P},{n}] or None, got "
+                             f"{list(gain.shape) if isinstance(gain, torch.Tensor) else type(gain).__name__}")
+        gain = torch.clamp(gain, 0, 1)
+    return rgb.to(u.dtype), None if gain is None else gain.to(u.dtype)
+
+
+def appearance(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur, px, py, cam: Camera) -> list:
+    """(rgb, gain) of every kind at the pairs (surfels idx [n], points (u, v) [P,n]), in table order, then the
+    batch's Python kind if it has one (px, py [P,1]: the pixel centres, for its view directions)."""
+    looks = [KIND_TWINS[kind](s, idx, u, v, blur) for kind in BUILTIN_KINDS]
+    if s.appearance_kind is not None:
+        looks.append(python_kind_twin(s, idx, u, v, px, py, cam))
+    return looks
 
 
 def _texture_sample(s: Surfels, idx: torch.Tensor, u: torch.Tensor, v: torch.Tensor, blur=None):
