@@ -518,16 +518,26 @@ class Trainer:
                                       generator=self.gen, min_opacity=cfg.min_opacity, background=self.background,
                                       backend=self.backend, comm=self.comm)
 
-    def step(self) -> dict:
-        """One iteration; returns {"loss", "photo"} and, on logging iterations, the log records to write (rank 0)."""
+    def _next_views(self) -> list:
+        """The next views_per_step training views of the run's own order (a new permutation whenever it runs out)."""
+        views = []
+        for _ in range(self.cfg.views_per_step):  # every rank draws the same views and renders its share
+            if not self.view_order:
+                self.view_order = torch.randperm(len(self.scene.train), generator=self.gen).tolist()
+            views.append(self.scene.train[self.view_order.pop()])
+        return views
+
+    def step(self, views: list | None = None) -> dict:
+        """One iteration; returns {"loss", "photo"} and, on logging iterations, the log records to write (rank 0).
+        views: the iteration's views (views_per_step of them: scene views, or `View.from_tensor(camera, image)`)
+        when the caller draws them, as a nerfstudio data manager does; None: the next ones of the run's own order."""
         cfg, net, optimizer, scene, comm = self.cfg, self.net, self.optimizer, self.scene, self.comm
         step = self.iteration + 1
         t0 = time.perf_counter()
-        views = []
-        for _ in range(cfg.views_per_step):  # every rank draws the same views and renders its share
-            if not self.view_order:
-                self.view_order = torch.randperm(len(scene.train), generator=self.gen).tolist()
-            views.append(scene.train[self.view_order.pop()])
+        views = self._next_views() if views is None else list(views)
+        if len(views) != cfg.views_per_step:
+            raise SplatzooError(f"Trainer.step was given {len(views)} views; the run trains on {cfg.views_per_step} "
+                                "a step (batch_size x nproc)")
         mine = views[comm.rank * cfg.batch_size:(comm.rank + 1) * cfg.batch_size]
         for g in optimizer.param_groups:
             if g.get("name") == "means":
