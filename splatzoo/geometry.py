@@ -85,13 +85,16 @@ def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
 
 def look_at_point(cameras) -> torch.Tensor:
     """The point closest to every camera's optical axis, least squares [3] (float64): what a set of cameras looks
-    at (the object of an orbit, the middle of a forward-facing capture)."""
-    centers = torch.stack([c.center.double() for c in cameras])
-    dirs = torch.stack([c.R[2].double() for c in cameras])  # optical axes in world coordinates
+    at (the object of an orbit, the middle of a forward-facing capture). Axes that meet nowhere (one camera, or all
+    parallel) give the mean of the points one unit ahead of the cameras."""
     A = torch.zeros(3, 3, dtype=torch.float64)
     b = torch.zeros(3, dtype=torch.float64)
-    for c, d in zip(centers, dirs):
+    for cam in cameras:
+        c, d = cam.center.double(), cam.R[2].double()  # R's third row: the optical axis in world coordinates
+        d = d / d.norm()
         P = torch.eye(3, dtype=torch.float64) - torch.outer(d, d)
         A += P
         b += P @ c
-    return torch.linalg.lstsq(A, b).solution
+    if len(cameras) < 2 or torch.linalg.matrix_rank(A) < 3:
+        return torch.stack([c.center.double() + c.R[2].double() for c in cameras]).mean(0)
+    return torch.linalg.solve(A, b)

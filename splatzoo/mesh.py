@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
+from .geometry import look_at_point
 from .io import say_progress as _say
 from .mesh_files import write_mesh
 from .types import Camera
@@ -69,22 +70,6 @@ class MeshStats:
     vertices: int = 0
     triangles: int = 0
     seconds: float = 0.0
-
-
-def look_at_point(cameras: list[Camera]) -> torch.Tensor:
-    """The point closest (least squares) to every camera's optical axis [3] float64."""
-    A = torch.zeros(3, 3, dtype=torch.float64)
-    b = torch.zeros(3, dtype=torch.float64)
-    for cam in cameras:
-        c, d = cam.center.double(), cam.R[2].double()  # R's third row: optical axis in world coordinates
-        d = d / d.norm()
-        P = torch.eye(3, dtype=torch.float64) - torch.outer(d, d)
-        A += P
-        b += P @ c
-    if len(cameras) < 2 or torch.linalg.matrix_rank(A) < 3:
-        # parallel axes (or one camera) meet nowhere: take the mean of the points one unit ahead of the cameras
-        return torch.stack([c.center.double() + c.R[2].double() for c in cameras]).mean(0)
-    return torch.linalg.solve(A, b)
 
 
 def mesh_parameters(cameras: list[Camera], *, voxel_size: float | None = None, sdf_trunc: float | None = None,
