@@ -220,7 +220,7 @@ def test_pair_plans_for_each_strategy(orbit_db, tmp_path, monkeypatch):
     choice, pairs = plan("exhaustive")
     assert len(pairs) == 14 * 13 // 2
     choice, pairs = plan("sequential")
-    ids = sfm._image_ids(db)
+    ids = sfm.image_ids(db)
     rank = {ids[str(n)]: k for k, n in enumerate(sorted(names))}
     gaps = sorted({abs(rank[a] - rank[b]) for a, b in pairs})
     assert {1, 2, 10} <= set(gaps)

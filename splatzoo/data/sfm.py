@@ -268,7 +268,7 @@ def check_vocab_tree(path) -> Path:
 
 
 @contextlib.contextmanager
-def _quiet_stdio():
+def quiet_stdio():
     """Silence what C++ code prints straight to the process's stdout/stderr (file descriptors 1 and 2)."""
     sys.stdout.flush()
     sys.stderr.flush()
@@ -322,7 +322,7 @@ def build_vocab_tree(db_path: Path, out: Path, *, num_threads: int = -1, seed: i
     opts.num_threads = num_threads
     try:
         index = index_cls.create(128, 64)
-        with _quiet_stdio():  # faiss prints a sizing warning for the tree's small second level
+        with quiet_stdio():  # faiss prints a sizing warning for the tree's small second level
             index.build(opts, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, data))
         index.write(str(out))
     except Exception as e:
@@ -352,12 +352,12 @@ def _retrieval_pairs(db_path: Path, tree: Path, *, num_images: int, query_ids=No
         db.close()
 
 
-def _fmt_seconds(s: float) -> str:
+def fmt_seconds(s: float) -> str:
     s = max(0.0, float(s))
     return f"{s:.0f} s" if s < 90 else f"{int(s // 60)} min {int(s % 60):02d} s"
 
 
-def _image_ids(db_path: Path) -> dict[str, int]:
+def image_ids(db_path: Path) -> dict[str, int]:
     pycolmap = import_pycolmap()
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -371,7 +371,7 @@ def plan_pairs(choice: MatchingChoice, db_path: Path, work: Path, *, vocab_tree=
     """The image id pairs to match under `choice` (after feature extraction). An `auto` choice whose vocabulary
     tree cannot be had falls back to exhaustive (or sequential for numbered names), with a note."""
     pycolmap = import_pycolmap()
-    ids = _image_ids(db_path)
+    ids = image_ids(db_path)
     n = len(ids)
     strategy = choice.strategy
     work.mkdir(parents=True, exist_ok=True)
@@ -465,8 +465,8 @@ def match_pairs(db_path: Path, pairs: list[tuple[int, int]], work: Path, *, num_
             done = start + len(part)
             if total > chunk:
                 spent = time.perf_counter() - t0
-                say(f"      matched {done}/{total} pairs, {_fmt_seconds(spent)} so far"
-                    + (f", about {_fmt_seconds(spent / done * (total - done))} left" if done < total else ""))
+                say(f"      matched {done}/{total} pairs, {fmt_seconds(spent)} so far"
+                    + (f", about {fmt_seconds(spent / done * (total - done))} left" if done < total else ""))
     finally:
         pair_file.unlink(missing_ok=True)
         if aliased:
@@ -544,8 +544,8 @@ def _map(db: Path, images: Path, work: Path, *, num_threads: int, seed: int, ref
         count[0] += 1
         if count[0] % step == 0:
             spent = time.perf_counter() - t0
-            left = f", about {_fmt_seconds(spent / count[0] * (total - count[0]))} left" if count[0] < total else ""
-            say(f"      mapping: {count[0]}/{total} images tried, {_fmt_seconds(spent)} so far{left}")
+            left = f", about {fmt_seconds(spent / count[0] * (total - count[0]))} left" if count[0] < total else ""
+            say(f"      mapping: {count[0]}/{total} images tried, {fmt_seconds(spent)} so far{left}")
     try:
         models = pycolmap.incremental_mapping(db, images, work, options=opts, next_image_callback=next_image)
     finally:
@@ -581,8 +581,8 @@ def _extract(db: Path, images: Path, names: list, mode, reader, extract, say) ->
         done = start + len(part)
         if len(names) > chunk:
             spent = time.perf_counter() - t0
-            say(f"      {done}/{len(names)} images, {_fmt_seconds(spent)} so far"
-                + (f", about {_fmt_seconds(spent / done * (len(names) - done))} left" if done < len(names) else ""))
+            say(f"      {done}/{len(names)} images, {fmt_seconds(spent)} so far"
+                + (f", about {fmt_seconds(spent / done * (len(names) - done))} left" if done < len(names) else ""))
 
 
 def sfm_in_place(dataset: Path, *, camera_model: str = "SIMPLE_RADIAL", single_camera: bool = True,

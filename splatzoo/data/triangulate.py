@@ -29,10 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
+from ..io import say_progress as _say
 from ..types import Camera
 from .colmap import import_pycolmap, quiet_colmap
 from .scene import View
-from .sfm import _image_ids, _say, match_pairs
+from .sfm import image_ids, match_pairs
 
 LONG_SIDE = 1600           # photos with a longer side than this are downscaled to it (for speed)
 MAX_IMAGES = 200           # at most this many views (evenly spread over the list) are used
@@ -266,7 +267,7 @@ def triangulate_points(views: list[View], *, max_images: int = MAX_IMAGES, long_
                 pycolmap.set_random_seed(0)
                 say(f"      [1/3] SIFT features of {len(names)} images")
                 _extract(db, images, names, num_threads, say)
-                ids = _image_ids(db)
+                ids = image_ids(db)
                 index = {n: i for i, n in enumerate(names)}
                 if len(views) <= EXHAUSTIVE_MAX:
                     pairs = list(itertools.combinations(range(len(names)), 2))

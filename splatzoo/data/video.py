@@ -109,9 +109,9 @@ def check_frame_options(fps=None, frames=None) -> tuple[float | None, int | None
 
 
 def _open(cv2, path: Path):
-    from .sfm import _quiet_stdio
+    from .sfm import quiet_stdio
 
-    with _quiet_stdio():   # ffmpeg prints its own complaints about files it cannot parse; ours says what to do
+    with quiet_stdio():   # ffmpeg prints its own complaints about files it cannot parse; ours says what to do
         cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not cap.isOpened():
         raise VideoError(f"cannot read {path} as a video: it is not a video, or it uses a codec this OpenCV cannot "
@@ -138,7 +138,8 @@ def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | No
     fps: frames to keep per second of video; frames: how many to keep over the whole clip (give one; neither means
     DEFAULT_FPS). The clip is cut into that many equal windows and the sharpest frame of each is kept. A clip with
     fewer frames than asked gives all of them. Raises VideoError for what is not a readable video."""
-    from .sfm import _fmt_seconds, _say
+    from ..io import say_progress as _say
+    from .sfm import fmt_seconds
 
     cv2 = _import_cv2()
     say = _say(progress)
@@ -166,7 +167,7 @@ def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | No
             if len(scores) % step == 0 and expected and len(scores) < expected:
                 spent = time.perf_counter() - t0
                 say(f"      {len(scores)}/{expected} frames scored, about "
-                    f"{_fmt_seconds(spent / len(scores) * (expected - len(scores)) * 1.3)} left")
+                    f"{fmt_seconds(spent / len(scores) * (expected - len(scores)) * 1.3)} left")
     finally:
         cap.release()
     n = len(scores)
@@ -243,7 +244,8 @@ def sfm_video(video, out_dir, *, fps: float | None = None, frames: int | None = 
     (`matching` auto means sequential for frames of a video). sfm_options go to sfm_in_place (camera_model, focal,
     num_threads, seed, retry, report, vocab_tree, single_camera). Nothing is written at out_dir until SfM has
     finished. Returns the SfMResult."""
-    from .sfm import _say, choose_matching, sfm_in_place
+    from ..io import say_progress as _say
+    from .sfm import choose_matching, sfm_in_place
     from .staging import finish_output, prepare_output
 
     say = _say(progress)
