@@ -338,10 +338,8 @@ def _undistort_masks(out: Path, sparse: Path, images_dir: Path, masks_dir: Path)
         shutil.move(str(Path(work) / "images"), str(out / "masks"))
 
 
-def load_colmap(root, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
-                background=(0.0, 0.0, 0.0), masks: bool = False) -> Scene:
-    """Read a COLMAP dataset folder: images/ (or images_<n>/ for resolution n) and sparse/0/."""
-    root = Path(root)
+def _locate_dataset(root: Path) -> tuple[Path, Path]:
+    """images/ and the sparse model folder of a COLMAP dataset, or a DataError that says which is missing."""
     images_dir = root / "images"
     if not images_dir.is_dir():
         raise DataError(f"COLMAP dataset {root} has no images/ folder; put the photos in {images_dir} "
@@ -352,6 +350,12 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
     if sparse is None:
         raise DataError(f"COLMAP dataset {root} has no sparse model (sparse/0/cameras.bin or .txt); "
                         f"run `splatzoo sfm {images_dir} --out {root}` to make one")
+    return images_dir, sparse
+
+
+def _read_registered(sparse: Path):
+    """The model and its registered images (those with a pose); a DataError when it has no such image or no
+    3D point."""
     model = read_model(sparse)
     registered = [im for im in model.images.values() if im.has_pose]
     if not registered:
@@ -360,34 +364,24 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
     if model.num_points3D() == 0:
         raise DataError(f"COLMAP model {sparse} has no 3D points, so there is nothing to initialise surfels "
                         "from; re-run `splatzoo sfm` (or COLMAP point_triangulator) to triangulate points")
-    masks_dir = root / "masks" if (root / "masks").is_dir() else None
+    return model, registered
 
-    # Every photo must be present and whole before undistortion reads it: it would copy a gap or decode a cut-off
-    # JPEG as grey without a word.
+
+def _check_photos(registered, images_dir: Path, sparse: Path) -> None:
+    """Every photo must be present and whole before undistortion reads it: it would copy a gap or decode a cut-off
+    JPEG as grey without a word."""
     missing = [im.name for im in registered if not (images_dir / im.name).is_file()]
     if missing:
         raise DataError(f"{len(missing)} image(s) named in {sparse} are missing from {images_dir} "
                         f"(e.g. {', '.join(missing[:3])}); restore them or re-run SfM on the images you have")
     for im in registered:
         image_size(images_dir / im.name)
-    used = sorted({im.camera_id for im in registered})
-    for cid in used:
-        check_undistortable(model.cameras[cid], sparse)
-    distorted = [cid for cid in used if not is_pinhole(model.cameras[cid])]
-    _check_lenses(model, used, distorted, registered, sparse)
-    if distorted:
-        # Masks are undistorted along with the images whether or not they are asked for now, so loading with
-        # and without masks shares one cached copy.
-        und = undistort(root, sparse, images_dir, masks_dir)
-        model = read_model(und / "sparse")
-        registered = [im for im in model.images.values() if im.has_pose]
-        images_dir = und / "images"
-        masks_dir = und / "masks" if (und / "masks").is_dir() else None
-        resolution_dir = None
-    else:
-        resolution_dir = root / f"images_{resolution}" if resolution in (2, 4, 8) else None
 
-    # Each image must match its camera's size: a stray crop or rotated photo would shift every pixel.
+
+def _check_camera_sizes(model, registered, images_dir: Path, sparse: Path):
+    """Each image's size, and the (x, y) scale of each camera whose images are a uniformly downscaled copy; a
+    DataError when an image does not match its camera's size: a stray crop or rotated photo would shift every
+    pixel."""
     sizes = {im.name: image_size(images_dir / im.name) for im in registered}
     by_camera: dict[int, set] = defaultdict(set)
     for im in registered:
@@ -419,12 +413,50 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
                                 f"{cam.width}x{cam.height} (a different aspect ratio); use the images the model "
                                 "was made from, or re-run SfM on these")
             cam_scale[cid] = (sx, sy)
+    return sizes, cam_scale
 
-    if masks and distorted and masks_dir is None and (root / "masks").is_dir():
-        lacking = next((im.name for im in registered if find_mask(root / "masks", im.name) is None), None)
-        raise DataError(f"masks requested but {root / 'masks'} has no mask for image {lacking}, so the masks could "
-                        f"not be undistorted with the images; add masks/{lacking} (or .png) for every image, "
-                        "or load without masks")
+
+def _world_to_camera(im, sparse: Path) -> np.ndarray:
+    """The image's 4x4 world-to-camera matrix; a DataError when its pose is broken."""
+    pose = im.cam_from_world()
+    w2c = np.eye(4)
+    w2c[:3, :4] = np.asarray(pose.matrix(), dtype=np.float64)
+    # COLMAP stores the quaternion as written; a zero one becomes the identity rotation without a word
+    quat = np.asarray(pose.rotation.quat, dtype=np.float64)
+    length = float(np.linalg.norm(quat))
+    if not (np.isfinite(w2c).all() and abs(length - 1) <= 1e-3):
+        raise DataError(f"COLMAP model {sparse}: image {im.name} has a broken pose (its rotation quaternion "
+                        f"{quat[[3, 0, 1, 2]].tolist()} (w, x, y, z) has length {length:.3g}, not 1, or its "
+                        "translation is not finite); re-export the model from COLMAP or re-run `splatzoo sfm`")
+    return w2c
+
+
+def _image_path(name: str, images_dir: Path, resolution_dir: Path | None, cam: Camera) -> Path:
+    """The image file to read: a pre-shrunk copy (Mip-NeRF 360 layout) when there is one of the camera's size."""
+    path = images_dir / name
+    if resolution_dir is not None and (resolution_dir / name).is_file():
+        # Pre-shrunk copies (Mip-NeRF 360 layout) decode faster; accept them when they have the right size.
+        rw, rh = image_size(resolution_dir / name)
+        if abs(rw - cam.width) <= 1 and abs(rh - cam.height) <= 1:
+            path = resolution_dir / name
+    return path
+
+
+def _mask_of(name: str, path: Path, masks_dir: Path | None, root: Path) -> Path | None:
+    """The mask file of a view when masks are asked for (None: the image's alpha channel); a DataError when there
+    is neither."""
+    mask_path = find_mask(masks_dir, name) if masks_dir is not None else None
+    if mask_path is None and not image_has_alpha(path):
+        tried = ", ".join(dict.fromkeys([name, name + ".png", Path(name).stem + ".png"]))
+        raise DataError(f"masks requested but image {path} has no alpha channel and no mask file in "
+                        f"{root / 'masks'} (looked for {tried}); add masks or load without masks")
+    return mask_path
+
+
+def _build_views(root: Path, sparse: Path, model, registered, sizes, cam_scale, images_dir: Path,
+                 resolution_dir: Path | None, masks_dir: Path | None, *, resolution, max_width, masks: bool,
+                 background) -> list[View]:
+    """One View per registered image, in name order, with its camera scaled to the asked resolution."""
     views = []
     for im in sorted(registered, key=lambda im: im.name):
         ccam = model.cameras[im.camera_id]
@@ -434,35 +466,22 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
             sx, sy = cam_scale[im.camera_id]
             K[0] *= sx
             K[1] *= sy
-        pose = im.cam_from_world()
-        w2c = np.eye(4)
-        w2c[:3, :4] = np.asarray(pose.matrix(), dtype=np.float64)
-        # COLMAP stores the quaternion as written; a zero one becomes the identity rotation without a word
-        quat = np.asarray(pose.rotation.quat, dtype=np.float64)
-        length = float(np.linalg.norm(quat))
-        if not (np.isfinite(w2c).all() and abs(length - 1) <= 1e-3):
-            raise DataError(f"COLMAP model {sparse}: image {im.name} has a broken pose (its rotation quaternion "
-                            f"{quat[[3, 0, 1, 2]].tolist()} (w, x, y, z) has length {length:.3g}, not 1, or its "
-                            "translation is not finite); re-export the model from COLMAP or re-run `splatzoo sfm`")
+        w2c = _world_to_camera(im, sparse)
         cam = Camera(torch.from_numpy(w2c), torch.from_numpy(K), w, h, im.name)
         cam = scale_camera(cam, target_scale(w, h, resolution, max_width))
-        path = images_dir / im.name
-        if resolution_dir is not None and (resolution_dir / im.name).is_file():
-            # Pre-shrunk copies (Mip-NeRF 360 layout) decode faster; accept them when they have the right size.
-            rw, rh = image_size(resolution_dir / im.name)
-            if abs(rw - cam.width) <= 1 and abs(rh - cam.height) <= 1:
-                path = resolution_dir / im.name
+        path = _image_path(im.name, images_dir, resolution_dir, cam)
         mask_path, use_mask = None, False
         if masks:
-            mask_path = find_mask(masks_dir, im.name) if masks_dir is not None else None
-            if mask_path is None and not image_has_alpha(path):
-                tried = ", ".join(dict.fromkeys([im.name, im.name + ".png", Path(im.name).stem + ".png"]))
-                raise DataError(f"masks requested but image {path} has no alpha channel and no mask file in "
-                                f"{root / 'masks'} (looked for {tried}); add masks or load without masks")
+            mask_path = _mask_of(im.name, path, masks_dir, root)
             use_mask = True
         views.append(View(camera=cam, name=im.name, path=path, mask_path=mask_path, use_mask=use_mask,
                           background=tuple(background)))
+    return views
 
+
+def _read_points(model, sparse: Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """The model's 3D points (float32) and their colours in [0, 1]; a DataError when a position is not finite or
+    does not fit float32."""
     ids = sorted(model.points3D.keys())
     xyz64 = np.array([model.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
     bad = ~(np.isfinite(xyz64) & (np.abs(xyz64) <= np.finfo(np.float32).max)).all(1)
@@ -472,7 +491,44 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
                         "Re-export the model from COLMAP or re-run `splatzoo sfm`")
     xyz = xyz64.astype(np.float32)
     rgb = np.array([model.points3D[i].color for i in ids], dtype=np.float32).reshape(-1, 3) / 255.0
-    points, colors = torch.from_numpy(xyz), torch.from_numpy(rgb)
+    return torch.from_numpy(xyz), torch.from_numpy(rgb)
+
+
+def load_colmap(root, *, resolution: int | None = None, max_width: int | None = None, test_every: int = 8,
+                background=(0.0, 0.0, 0.0), masks: bool = False) -> Scene:
+    """Read a COLMAP dataset folder: images/ (or images_<n>/ for resolution n) and sparse/0/."""
+    root = Path(root)
+    images_dir, sparse = _locate_dataset(root)
+    model, registered = _read_registered(sparse)
+    masks_dir = root / "masks" if (root / "masks").is_dir() else None
+
+    _check_photos(registered, images_dir, sparse)
+    used = sorted({im.camera_id for im in registered})
+    for cid in used:
+        check_undistortable(model.cameras[cid], sparse)
+    distorted = [cid for cid in used if not is_pinhole(model.cameras[cid])]
+    _check_lenses(model, used, distorted, registered, sparse)
+    if distorted:
+        # Masks are undistorted along with the images whether or not they are asked for now, so loading with
+        # and without masks shares one cached copy.
+        und = undistort(root, sparse, images_dir, masks_dir)
+        model = read_model(und / "sparse")
+        registered = [im for im in model.images.values() if im.has_pose]
+        images_dir = und / "images"
+        masks_dir = und / "masks" if (und / "masks").is_dir() else None
+        resolution_dir = None
+    else:
+        resolution_dir = root / f"images_{resolution}" if resolution in (2, 4, 8) else None
+
+    sizes, cam_scale = _check_camera_sizes(model, registered, images_dir, sparse)
+    if masks and distorted and masks_dir is None and (root / "masks").is_dir():
+        lacking = next((im.name for im in registered if find_mask(root / "masks", im.name) is None), None)
+        raise DataError(f"masks requested but {root / 'masks'} has no mask for image {lacking}, so the masks could "
+                        f"not be undistorted with the images; add masks/{lacking} (or .png) for every image, "
+                        "or load without masks")
+    views = _build_views(root, sparse, model, registered, sizes, cam_scale, images_dir, resolution_dir, masks_dir,
+                         resolution=resolution, max_width=max_width, masks=masks, background=background)
+    points, colors = _read_points(model, sparse)
     train, test = split_views(views, test_every, root)
     return Scene(name=root.resolve().name, root=root, train=train, test=test, points=points, colors=colors,
                  extent=camera_extent([v.camera for v in (train or views)], points),
