@@ -585,6 +585,118 @@ def _extract(db: Path, images: Path, names: list, mode, reader, extract, say) ->
                 + (f", about {fmt_seconds(spent / done * (len(names) - done))} left" if done < len(names) else ""))
 
 
+def _check_focal(focal, sizes: set, images: Path) -> float | None:
+    """The given focal length in pixels as a float (None when none is given); a DataError when it is not a positive
+    number or the photos are of several sizes."""
+    if focal is None:
+        return None
+    if isinstance(focal, bool) or not isinstance(focal, (int, float)) or not np.isfinite(focal) or focal <= 0:
+        raise DataError(f"focal={focal!r}: give the focal length in pixels of the photos, a positive number "
+                        "(for a 36 mm-equivalent lens of F mm: F / 36 x the photo's width)")
+    if len(sizes) > 1:
+        listing = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
+        raise DataError(f"a focal length in pixels fits photos of one size, but {images} holds several "
+                        f"({listing}); resize the photos to one size or leave out --focal")
+    return float(focal)
+
+
+def _extraction_options(camera_model: str, num_threads: int):
+    """pycolmap's image reader options (the camera model) and feature extraction options (threads, on the CPU)."""
+    pycolmap = import_pycolmap()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    extract = pycolmap.FeatureExtractionOptions()
+    extract.num_threads = num_threads
+    extract.use_gpu = False
+    return reader, extract
+
+
+def _map_and_check(db: Path, images: Path, work: Path, *, focal, priors, num_threads: int, seed: int, say,
+                   total: int):
+    """Incremental mapping, then the check of the model it keeps (said): (model, number of models, check), the
+    model and its check None when nothing was registered."""
+    # a given focal is held in every pass (refined, it drifts away: 230 px asked, 117-127 px found)
+    rec, n_models = _map(db, images, work, num_threads=num_threads, seed=seed, refine_focal=focal is None, say=say,
+                         total=total)
+    check = check_reconstruction(rec, priors, total) if rec is not None else None
+    if check is not None:
+        _say_check(say, check)
+    return rec, n_models, check
+
+
+def _retry_simpler(db: Path, images: Path, work: Path, rec, n_models: int, check, *, camera_model: str, focal,
+                   priors, num_threads: int, seed: int, say, total: int):
+    """Map again with SIMPLE_PINHOLE cameras after an implausible fit and keep the better of the two fits:
+    (model, number of models, check); the database is left describing the model that is kept."""
+    why = "; ".join(f.message for f in check.implausible) if check else "nothing was registered"
+    hold = f", focal length held at the given {focal:g} px" if focal is not None else ""
+    say(f"the {camera_model} fit looks implausible ({why}); mapping again with {SIMPLE_MODEL} (one focal "
+        f"length, no distortion, principal point at the image centre{hold}) ...")
+    old = _set_cameras(db, _simple_cameras(_read_cameras(db), priors))
+    rec2, n2, check2 = _map_and_check(db, images, work, focal=focal, priors=priors, num_threads=num_threads,
+                                      seed=seed, say=say, total=total)
+    # On a tie the simpler camera wins (it cannot fold, and has fewer ways to be wrong) unless it explains
+    # the photos much worse, as it does for a lens with real distortion.
+    if check2 is not None and (check is None or (
+            check2.rank() <= check.rank()
+            and check2.reprojection_error <= max(1.5 * check.reprojection_error,
+                                                 check.reprojection_error + 0.5))):
+        say(f"kept the {SIMPLE_MODEL} fit")
+        return rec2, n2, check2
+    say(f"kept the {camera_model} fit (the {SIMPLE_MODEL} one is worse)")
+    _set_cameras(db, old)   # the database describes the model that is kept
+    return rec, n_models, check
+
+
+def _check_result(rec, check, images: Path, retry: bool) -> None:
+    """A DataError when SfM registered nothing, triangulated no point, or kept cameras that fold."""
+    if rec is None:
+        raise DataError(f"SfM registered no images in {images}: no image pair had enough matched features. "
+                        "Take more photos with large overlap of a textured, static subject and run again")
+    if rec.num_points3D() == 0:
+        raise DataError(f"SfM on {images} triangulated no points; take photos with more texture and overlap")
+    folds = [f for f in check.findings if f.what == "fold"]
+    if folds:
+        raise DataError(f"SfM on {images} found cameras that cannot be used: {folds[0].message}. Run it again with "
+                        f"--camera-model {SIMPLE_MODEL}, and --focal PIXELS if you know the lens "
+                        f"({'' if retry else 'or without --no-retry, '}nothing was written)")
+
+
+def _say_findings(say, check) -> None:
+    """Say the check's findings as warnings, and what to do when the fit is implausible."""
+    for f in check.findings:
+        say(("warning: the fit may be wrong: " if f.implausible else "warning: ") + f.message)
+    if check.implausible:
+        say("warning: check the cameras in the report before training; if you know the lens, run again with "
+            f"--camera-model {SIMPLE_MODEL} --focal PIXELS. Fine repeated patterns and symmetric subjects mislead SfM: "
+            "photos that also show some irregular texture help")
+
+
+def _write_sparse(rec, dataset: Path) -> None:
+    """Write the model to dataset/sparse/0/ (binary), replacing whatever sparse/ held."""
+    out = dataset / "sparse" / "0"
+    if out.parent.exists():
+        shutil.rmtree(out.parent)
+    out.mkdir(parents=True)
+    rec.write_binary(str(out))
+
+
+def _write_report(dataset: Path, rec, check, *, camera_model: str, kept: str, retried: bool, focal, choice,
+                  num_pairs: int) -> None:
+    """dataset/sfm_report.json (what was asked, what was kept, the check) and dataset/sfm_report.png."""
+    info = {"camera_model_asked": camera_model, "camera_model": kept, "retried": retried,
+            "focal_given": focal, "matching": choice.strategy, "matching_asked": choice.asked,
+            "matching_reason": choice.reason, "num_pairs": num_pairs, **check.to_json()}
+    write_json(dataset / REPORT_JSON, info)
+    if not retried:
+        title = f"SfM with {kept} cameras"
+    elif kept == camera_model:
+        title = f"SfM with {kept} cameras (implausible, and a {SIMPLE_MODEL} retry was worse)"
+    else:
+        title = f"SfM with {kept} cameras (after an implausible {camera_model} fit)"
+    write_report_png(rec, check, dataset / REPORT_PNG, title=title)
+
+
 def sfm_in_place(dataset: Path, *, camera_model: str = "SIMPLE_RADIAL", single_camera: bool = True,
                  num_threads: int = -1, seed: int = 0, progress=None, focal: float | None = None,
                  retry: bool = True, report: bool = True, matching: str = "exhaustive", vocab_tree=None,
@@ -606,28 +718,17 @@ def sfm_in_place(dataset: Path, *, camera_model: str = "SIMPLE_RADIAL", single_c
     if choice.strategy == "spatial":
         check_spatial(images, names)
     sizes = {image_size(images / n) for n in names}
-    if focal is not None:
-        if isinstance(focal, bool) or not isinstance(focal, (int, float)) or not np.isfinite(focal) or focal <= 0:
-            raise DataError(f"focal={focal!r}: give the focal length in pixels of the photos, a positive number "
-                            "(for a 36 mm-equivalent lens of F mm: F / 36 x the photo's width)")
-        if len(sizes) > 1:
-            listing = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
-            raise DataError(f"a focal length in pixels fits photos of one size, but {images} holds several "
-                            f"({listing}); resize the photos to one size or leave out --focal")
-        focal = float(focal)
+    focal = _check_focal(focal, sizes, images)
     db = dataset / "database.db"
     db.unlink(missing_ok=True)
     if not single_camera:
         mode = pycolmap.CameraMode.PER_IMAGE
     else:  # one camera for all photos; AUTO groups them by size when sizes differ
         mode = pycolmap.CameraMode.SINGLE if len(sizes) == 1 else pycolmap.CameraMode.AUTO
+    mapping = {"num_threads": num_threads, "seed": seed, "say": say, "total": len(names)}
     try:
         pycolmap.set_random_seed(seed)
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = camera_model
-        extract = pycolmap.FeatureExtractionOptions()
-        extract.num_threads = num_threads
-        extract.use_gpu = False
+        reader, extract = _extraction_options(camera_model, num_threads)
         with quiet_colmap(2):  # its warnings are about GPU/threads/RAM, not about the result
             say(f"[1/3] extracting SIFT features from {len(names)} images ...")
             _extract(db, images, names, mode, reader, extract, say)
@@ -640,37 +741,15 @@ def sfm_in_place(dataset: Path, *, camera_model: str = "SIMPLE_RADIAL", single_c
             match_pairs(db, pairs, dataset / ".sfm-work", num_threads=num_threads, say=say)
             match_seconds = time.perf_counter() - t_match
             say(f"[3/3] incremental mapping ({camera_model} camera) ...")
-            # a given focal is held in every pass (refined, it drifts away: 230 px asked, 117-127 px found)
-            rec, n_models = _map(db, images, dataset / ".sfm-models", num_threads=num_threads, seed=seed,
-                                 refine_focal=focal is None, say=say, total=len(names))
-            check = check_reconstruction(rec, priors, len(names)) if rec is not None else None
-            if check is not None:
-                _say_check(say, check)
+            rec, n_models, check = _map_and_check(db, images, dataset / ".sfm-models", focal=focal, priors=priors,
+                                                  **mapping)
             retried = False
             simpler = camera_model != SIMPLE_MODEL or focal is not None
             if retry and simpler and (check is None or check.implausible):
                 retried = True
-                why = "; ".join(f.message for f in check.implausible) if check else "nothing was registered"
-                hold = f", focal length held at the given {focal:g} px" if focal is not None else ""
-                say(f"the {camera_model} fit looks implausible ({why}); mapping again with {SIMPLE_MODEL} (one focal "
-                    f"length, no distortion, principal point at the image centre{hold}) ...")
-                old = _set_cameras(db, _simple_cameras(_read_cameras(db), priors))
-                rec2, n2 = _map(db, images, dataset / ".sfm-models-retry", num_threads=num_threads, seed=seed,
-                                refine_focal=focal is None, say=say, total=len(names))
-                check2 = check_reconstruction(rec2, priors, len(names)) if rec2 is not None else None
-                if check2 is not None:
-                    _say_check(say, check2)
-                # On a tie the simpler camera wins (it cannot fold, and has fewer ways to be wrong) unless it explains
-                # the photos much worse, as it does for a lens with real distortion.
-                if check2 is not None and (check is None or (
-                        check2.rank() <= check.rank()
-                        and check2.reprojection_error <= max(1.5 * check.reprojection_error,
-                                                             check.reprojection_error + 0.5))):
-                    say(f"kept the {SIMPLE_MODEL} fit")
-                    rec, check, n_models = rec2, check2, n2
-                else:
-                    say(f"kept the {camera_model} fit (the {SIMPLE_MODEL} one is worse)")
-                    _set_cameras(db, old)   # the database describes the model that is kept
+                rec, n_models, check = _retry_simpler(db, images, dataset / ".sfm-models-retry", rec, n_models, check,
+                                                      camera_model=camera_model, focal=focal, priors=priors,
+                                                      **mapping)
     except DataError:
         raise
     except Exception as e:
@@ -678,44 +757,17 @@ def sfm_in_place(dataset: Path, *, camera_model: str = "SIMPLE_RADIAL", single_c
     finally:
         for junk in (".sfm-models", ".sfm-models-retry", ".sfm-work"):
             shutil.rmtree(dataset / junk, ignore_errors=True)
-    if rec is None:
-        raise DataError(f"SfM registered no images in {images}: no image pair had enough matched features. "
-                        "Take more photos with large overlap of a textured, static subject and run again")
-    if rec.num_points3D() == 0:
-        raise DataError(f"SfM on {images} triangulated no points; take photos with more texture and overlap")
-    folds = [f for f in check.findings if f.what == "fold"]
-    if folds:
-        raise DataError(f"SfM on {images} found cameras that cannot be used: {folds[0].message}. Run it again with "
-                        f"--camera-model {SIMPLE_MODEL}, and --focal PIXELS if you know the lens "
-                        f"({'' if retry else 'or without --no-retry, '}nothing was written)")
+    _check_result(rec, check, images, retry)
     kept = ", ".join(sorted({model_name(c) for c in rec.cameras.values()}))
-    for f in check.findings:
-        say(("warning: the fit may be wrong: " if f.implausible else "warning: ") + f.message)
-    if check.implausible:
-        say("warning: check the cameras in the report before training; if you know the lens, run again with "
-            f"--camera-model {SIMPLE_MODEL} --focal PIXELS. Fine repeated patterns and symmetric subjects mislead SfM: "
-            "photos that also show some irregular texture help")
-    out = dataset / "sparse" / "0"
-    if out.parent.exists():
-        shutil.rmtree(out.parent)
-    out.mkdir(parents=True)
-    rec.write_binary(str(out))
+    _say_findings(say, check)
+    _write_sparse(rec, dataset)
     res = SfMResult(dataset, len(names), rec.num_reg_images(), rec.num_points3D(),
                     float(rec.compute_mean_reprojection_error()), time.perf_counter() - t0, rec, check, kept, retried,
                     choice.strategy, len(pairs), {"extract": extract_seconds, "match": match_seconds,
                                                   "map": time.perf_counter() - t0 - extract_seconds - match_seconds})
     if report:
-        info = {"camera_model_asked": camera_model, "camera_model": kept, "retried": retried,
-                "focal_given": focal, "matching": choice.strategy, "matching_asked": choice.asked,
-                "matching_reason": choice.reason, "num_pairs": len(pairs), **check.to_json()}
-        write_json(dataset / REPORT_JSON, info)
-        if not retried:
-            title = f"SfM with {kept} cameras"
-        elif kept == camera_model:
-            title = f"SfM with {kept} cameras (implausible, and a {SIMPLE_MODEL} retry was worse)"
-        else:
-            title = f"SfM with {kept} cameras (after an implausible {camera_model} fit)"
-        write_report_png(rec, check, dataset / REPORT_PNG, title=title)
+        _write_report(dataset, rec, check, camera_model=camera_model, kept=kept, retried=retried, focal=focal,
+                      choice=choice, num_pairs=len(pairs))
     if n_models > 1:
         say(f"note: SfM split the photos into {n_models} models; kept the largest")
     if res.num_registered < len(names):
