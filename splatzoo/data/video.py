@@ -131,23 +131,11 @@ def _check_video_path(video) -> Path:
     return path
 
 
-def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | None = None, progress=None,
-                   suffix: str = ".jpg") -> VideoFrames:
-    """Write sharp, evenly spaced frames of `video` into `out_dir` as frame_00001.jpg, ... (time order).
-
-    fps: frames to keep per second of video; frames: how many to keep over the whole clip (give one; neither means
-    DEFAULT_FPS). The clip is cut into that many equal windows and the sharpest frame of each is kept. A clip with
-    fewer frames than asked gives all of them. Raises VideoError for what is not a readable video."""
-    from ..io import say_progress as _say
+def _score_frames(cv2, path: Path, say, t0: float):
+    """Pass 1: the sharpness of every frame of the clip, the frame size (None when no frame decodes) and the
+    clip's frame rate (0 when it does not say one)."""
     from .sfm import fmt_seconds
 
-    cv2 = _import_cv2()
-    say = _say(progress)
-    fps, frames = check_frame_options(fps, frames)
-    path = _check_video_path(video)
-    t0 = time.perf_counter()
-
-    # pass 1: score every frame
     cap = _open(cv2, path)
     try:
         video_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
@@ -170,7 +158,12 @@ def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | No
                     f"{fmt_seconds(spent / len(scores) * (expected - len(scores)) * 1.3)} left")
     finally:
         cap.release()
-    n = len(scores)
+    return scores, size, video_fps
+
+
+def _frames_to_keep(path: Path, n: int, video_fps: float, fps: float | None, frames: int | None, say) -> int:
+    """How many of the clip's n frames to keep (at most n); a VideoError when the clip or the rate asked gives
+    fewer than 3."""
     if n == 0:
         raise VideoError(f"no frame of {path} could be decoded: it holds no video frames, or its codec is one this "
                          "OpenCV cannot decode. Convert it to H.264 MP4 (e.g. ffmpeg -i IN -c:v libx264 clip.mp4)")
@@ -191,10 +184,12 @@ def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | No
         if count > n:
             say(f"note: the clip has only {n} frames; keeping all of them")
         count = n
-    chosen = select_frames(scores, count)
+    return count
 
-    # pass 2: write the chosen frames
-    out_dir = Path(out_dir)
+
+def _write_frames(cv2, path: Path, chosen: list[int], out_dir: Path, suffix: str) -> list[Path]:
+    """Pass 2: write the chosen frames as out_dir/frame_00001.jpg, ... (in the order chosen); a VideoError when
+    the clip does not give them again."""
     out_dir.mkdir(parents=True, exist_ok=True)
     width = max(5, len(str(len(chosen))))
     wanted = {idx: k for k, idx in enumerate(chosen)}
@@ -220,7 +215,13 @@ def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | No
     if any(p is None for p in paths):
         raise VideoError(f"{path} gave different frames on a second reading (a damaged file?); convert it, e.g. "
                          "ffmpeg -i IN -c:v libx264 clip.mp4, and try again")
-    median = float(np.median(scores))
+    return paths
+
+
+def _say_kept(say, scores: list, chosen: list[int], count: int, size, t0: float) -> float:
+    """Say how many frames were kept and how many blurred ones were passed over, and note kept frames that are
+    still blurred; the seconds spent since t0."""
+    n = len(scores)
     kept = [scores[i] for i in chosen]
     # blurred: under half the sharpness of the frame kept in its window; a kept frame under half the kept frames'
     # median: its whole window was blurred
@@ -235,6 +236,32 @@ def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | No
     if blurry:
         say(f"note: {blurry} of the kept frames are still blurred (sharpness under half the clip's median): their "
             "whole window was; a slower camera move, or more light, gives sharper frames")
+    return spent
+
+
+def extract_frames(video, out_dir, *, fps: float | None = None, frames: int | None = None, progress=None,
+                   suffix: str = ".jpg") -> VideoFrames:
+    """Write sharp, evenly spaced frames of `video` into `out_dir` as frame_00001.jpg, ... (time order).
+
+    fps: frames to keep per second of video; frames: how many to keep over the whole clip (give one; neither means
+    DEFAULT_FPS). The clip is cut into that many equal windows and the sharpest frame of each is kept. A clip with
+    fewer frames than asked gives all of them. Raises VideoError for what is not a readable video."""
+    from ..io import say_progress as _say
+
+    cv2 = _import_cv2()
+    say = _say(progress)
+    fps, frames = check_frame_options(fps, frames)
+    path = _check_video_path(video)
+    t0 = time.perf_counter()
+
+    scores, size, video_fps = _score_frames(cv2, path, say, t0)
+    n = len(scores)
+    count = _frames_to_keep(path, n, video_fps, fps, frames, say)
+    chosen = select_frames(scores, count)
+    paths = _write_frames(cv2, path, chosen, Path(out_dir), suffix)
+    median = float(np.median(scores))
+    kept = [scores[i] for i in chosen]
+    spent = _say_kept(say, scores, chosen, count, size, t0)
     return VideoFrames(paths, chosen, kept, n, video_fps, median, spent)
 
 
