@@ -317,11 +317,9 @@ class _Loaded:
         self.distorted = 0
 
 
-def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution, max_width,
-                skip_missing: bool = False) -> tuple[list[View], _Loaded]:
-    meta = _read_json(meta_path)
-    found = _Loaded(meta_path, meta)
-    frames = meta["frames"]
+def _frame_images(root: Path, meta_path: Path, frames: list, found: _Loaded, skip_missing: bool) -> list:
+    """Each frame's image (None for those missing, which then go to found.skipped); a DataError when images are
+    missing and skip_missing is not given, or when none exists."""
     paths = [_image_path(root, _frame_path(f, i, root, meta_path), meta_path) for i, f in enumerate(frames)]
     missing = [i for i, path in enumerate(paths) if path is None]
     if missing:
@@ -336,21 +334,76 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
                             "the transforms file, or pass --skip-missing (load_scene(..., skip_missing=True)) to "
                             "train without them")
         found.skipped = [str(Path(frames[i]["file_path"])) for i in missing]
+    return paths
+
+
+def _drop_missing_masks(root: Path, meta_path: Path, frames: list, paths: list, found: _Loaded,
+                        skip_missing: bool) -> list:
+    """`paths` without the frames whose mask_path names a mask that does not exist (they go to found.skipped_masks):
+    a mask the file names is part of the frame, so missing, it stops loading as a missing image does, unless
+    skip_missing is given and other frames are left."""
+    present = sum(p is not None for p in paths)
+    named = {i: _missing_mask(frames[i], root, meta_path, i) for i in range(len(frames)) if paths[i] is not None}
+    lacking = {i: m for i, m in named.items() if m is not None}
+    if lacking:
+        shown = [f"frame {i} ({frames[i]['file_path']}): {root / m}" for i, m in list(lacking.items())[:5]]
+        listing = ", ".join(shown) + (f" and {len(lacking) - 5} more" if len(lacking) > 5 else "")
+        if not skip_missing or len(lacking) == present:
+            raise MissingMaskError(
+                f"{meta_path}: {len(lacking)} of {len(frames)} frames name a mask (mask_path) that does not exist "
+                f"(also tried .png/.jpg/.jpeg): {listing}. Restore the masks or fix those frames' mask_path"
+                + ("" if skip_missing else ", or pass --skip-missing (load_scene(..., skip_missing=True)) to train "
+                                            "without those frames"))
+        found.skipped_masks = [f"{frames[i]['file_path']} (mask {m})" for i, m in lacking.items()]
+        paths = [None if i in lacking else p for i, p in enumerate(paths)]
+    return paths
+
+
+def _intrinsics(frame: dict, meta: dict, meta_path: Path, i: int, w: int, h: int):
+    """The frame's focal lengths and principal point (fx, fy, cx, cy) in pixels of its w x h image: from fl_x/fl_y
+    or camera_angle_x/_y, cx/cy, rescaled when given for another image size (w, h)."""
+    def get(key, **check):  # per-frame values override the file's
+        return _option(frame, meta, key, meta_path, i, **check)
+    fx, fy = get("fl_x", positive=True), get("fl_y", positive=True)
+    angle_x = get("camera_angle_x", positive=True, below=math.pi, hint=_ANGLE_HINT)
+    angle_y = get("camera_angle_y", positive=True, below=math.pi, hint=_ANGLE_HINT)
+    if fx is not None:
+        fy = fy if fy is not None else fx
+    elif angle_x is not None:
+        fx = 0.5 * w / math.tan(0.5 * angle_x)
+        fy = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fx
+    else:
+        raise DataError(f"{meta_path} gives no focal length for frame {i}: add camera_angle_x (radians) or fl_x")
+    fw, fh = get("w", positive=True), get("h", positive=True)
+    fw, fh = fw or w, fh or h
+    if (fw, fh) != (w, h):
+        fx *= w / fw   # intrinsics written for another image size: rescale them (distortion terms are unitless)
+        fy *= h / fh
+    cx = (get("cx") if get("cx") is not None else fw / 2) * (w / fw)
+    cy = (get("cy") if get("cy") is not None else fh / 2) * (h / fh)
+    return fx, fy, cx, cy
+
+
+def _frame_mask(frame: dict, root: Path, name: str, path: Path, meta_path: Path, i: int) -> Path | None:
+    """The frame's mask file when masks are asked for (None: the image's alpha channel); a DataError when there
+    is neither."""
+    mask_path = _mask_of(frame, root, name, meta_path, i)
+    if mask_path is None and not image_has_alpha(path):
+        raise DataError(f"masks requested but image {path} has no alpha channel and no mask in "
+                        f"{root / 'masks'}; load without masks")
+    return mask_path
+
+
+def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution, max_width,
+                skip_missing: bool = False) -> tuple[list[View], _Loaded]:
+    """The views of one transforms file (undistorted where a lens asks for it, scaled to the resolution asked) and
+    what else reading it found."""
+    meta = _read_json(meta_path)
+    found = _Loaded(meta_path, meta)
+    frames = meta["frames"]
+    paths = _frame_images(root, meta_path, frames, found, skip_missing)
     if masks:
-        # a mask the file names is part of the frame: missing, it stops loading as a missing image does
-        named = {i: _missing_mask(frames[i], root, meta_path, i) for i in range(len(frames)) if paths[i] is not None}
-        lacking = {i: m for i, m in named.items() if m is not None}
-        if lacking:
-            shown = [f"frame {i} ({frames[i]['file_path']}): {root / m}" for i, m in list(lacking.items())[:5]]
-            listing = ", ".join(shown) + (f" and {len(lacking) - 5} more" if len(lacking) > 5 else "")
-            if not skip_missing or len(lacking) == len(frames) - len(missing):
-                raise MissingMaskError(
-                    f"{meta_path}: {len(lacking)} of {len(frames)} frames name a mask (mask_path) that does not exist "
-                    f"(also tried .png/.jpg/.jpeg): {listing}. Restore the masks or fix those frames' mask_path"
-                    + ("" if skip_missing else ", or pass --skip-missing (load_scene(..., skip_missing=True)) to train "
-                                                "without those frames"))
-            found.skipped_masks = [f"{frames[i]['file_path']} (mask {m})" for i, m in lacking.items()]
-            paths = [None if i in lacking else p for i, p in enumerate(paths)]
+        paths = _drop_missing_masks(root, meta_path, frames, paths, found, skip_missing)
     views = []
     lenses = []   # (index in views, COLMAP camera of the photo, the frame in words) for the frames whose photos must
     #               be undistorted
@@ -370,37 +423,13 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
             # (intrinsics written for a stated size w, h are rescaled to each image: a downscaled copy is fine)
             raise DataError(f"images in {meta_path} differ in size: {size[2]} is {size[0]}x{size[1]} but {path} is "
                             f"{w}x{h}; a shared camera_angle_x needs one image size. Resize them to one size")
-
-        def get(key, **check):  # per-frame values override the file's
-            return _option(frame, meta, key, meta_path, i, **check)
-        fx, fy = get("fl_x", positive=True), get("fl_y", positive=True)
-        angle_x = get("camera_angle_x", positive=True, below=math.pi, hint=_ANGLE_HINT)
-        angle_y = get("camera_angle_y", positive=True, below=math.pi, hint=_ANGLE_HINT)
-        if fx is not None:
-            fy = fy if fy is not None else fx
-        elif angle_x is not None:
-            fx = 0.5 * w / math.tan(0.5 * angle_x)
-            fy = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fx
-        else:
-            raise DataError(f"{meta_path} gives no focal length for frame {i}: add camera_angle_x (radians) or fl_x")
-        fw, fh = get("w", positive=True), get("h", positive=True)
-        fw, fh = fw or w, fh or h
-        if (fw, fh) != (w, h):
-            fx *= w / fw   # intrinsics written for another image size: rescale them (distortion terms are unitless)
-            fy *= h / fh
-        cx = (get("cx") if get("cx") is not None else fw / 2) * (w / fw)
-        cy = (get("cy") if get("cy") is not None else fh / 2) * (h / fh)
+        fx, fy, cx, cy = _intrinsics(frame, meta, meta_path, i, w, h)
         lens = _colmap_camera(_camera_model(frame, meta, meta_path, i), _distortion(frame, meta, meta_path, i),
                               fx, fy, cx, cy, w, h, meta_path, i)
         w2c = np.linalg.inv(c2w @ _OPENGL_TO_OPENCV)
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
         name = str(path.relative_to(root))
-        mask_path = None
-        if masks:
-            mask_path = _mask_of(frame, root, name, meta_path, i)
-            if mask_path is None and not image_has_alpha(path):
-                raise DataError(f"masks requested but image {path} has no alpha channel and no mask in "
-                                f"{root / 'masks'}; load without masks")
+        mask_path = _frame_mask(frame, root, name, path, meta_path, i) if masks else None
         if lens is not None:
             lenses.append((len(views), lens, f"{meta_path}: frame {i} ({name})"))
         cam = Camera(torch.from_numpy(w2c), torch.from_numpy(K), w, h, name)
