@@ -325,9 +325,10 @@ def refuse_python_kind(kind: str, backend: str) -> None:
     from ..errors import SplatzooError
     from ..registry import APPEARANCE_KINDS
 
-    origin = next((e.origin for e in APPEARANCE_KINDS.entries() if e.name == kind), "registered in Python")
+    origin = next((e.origin for e in APPEARANCE_KINDS.entries() if e.name == kind), "built-in")
+    origin = "registered from code" if origin == "built-in" else origin  # register_appearance_kind's
     raise SplatzooError(
-        f"the {backend} backend cannot render the appearance kind {kind!r} ({origin}): it is written in Python, and "
+        f"the {backend} backend cannot render the appearance kind {kind!r}: it is written in Python ({origin}), and "
         "only the reference backend renders and differentiates Python kinds. Use --backend reference (backend="
         "'reference'), or give the kind its own section in splatzoo/csrc/surfel_math.h with its rows in the Surfels "
         "field table and its twin in rasterizers/reference.py (README, 'Plugins'), after which every backend renders "
