@@ -16,6 +16,11 @@ rates are per core for the CPU (divided by torch.get_num_threads()) and per GPU 
 grad; the backward of a loss on rgb, depth, normal and distortion), median of --repeats after one warm-up.
 --antialias off,on times each case without and with the pixel-footprint filter (RasterSettings.pixel_filter), one
 right after the other, and prints the ratio.
+
+--against LIBRARY times this checkout's cpu rasterizer against another build of it in one process, call by call on the
+same surfels (compare_builds): LIBRARY is the extension an older commit built, e.g. from a git worktree of it,
+`python -c "import sys; sys.path.insert(0, WORKTREE); from splatzoo.rasterizers import native;
+print(native.load('cpu').__file__)"`.
 """
 from __future__ import annotations
 
@@ -293,6 +298,79 @@ def _summary(results, echo):
                         echo(f"{scene}: {native} {what} K={K} antialiased / plain = {on / off:.2f}")
 
 
+def compare_builds(library, waves=WAVES, configs=CONFIGS[:2], repeats: int = 31, antialias=("off", "on"),
+                   json_path=None, echo=print) -> list[dict]:
+    """This checkout's cpu rasterizer against another build of it, `library` (an older commit's extension .so with
+    the same bindings), in one process: each repeat runs both on the same surfels, one right after the other (the
+    order alternating), forward and forward+backward. Times are the process's CPU time, which other processes on
+    shared cores do not inflate as they do wall time. Rows: each build's fastest time (ms) and the median ratio
+    new/old over the pairs run back to back."""
+    from splatzoo.errors import SplatzooError
+    from splatzoo.rasterizers import native, rasterize
+    from splatzoo.rasterizers.common import ANTIALIASED, SETTINGS
+
+    library = Path(library)
+    if not library.is_file():
+        raise SplatzooError(f"--against {library}: no such extension library; build the other commit's and give "
+                            "the .so's path")
+    new = native.load("cpu")
+    old = native._import_built(library.stem, library)
+    if tuple(getattr(old, "SURFEL_FIELDS", ())) != native.SURFEL_FIELDS:
+        raise SplatzooError(f"--against {library}: it takes the surfel fields {getattr(old, 'SURFEL_FIELDS', ())}, "
+                            f"this checkout {native.SURFEL_FIELDS}; only builds with the same bindings compare")
+    _, waves = check_request(["cpu"], waves, configs, repeats)
+    rows = []
+    echo(f"{'scene':<18}{'K':>5}{'AA':>4}{'old fwd':>9}{'new fwd':>9}{'ratio':>7}{'old f+b':>9}{'new f+b':>9}"
+         f"{'ratio':>7}   (CPU ms: the fastest; ratio: new/old, the median over pairs back to back)")
+    try:
+        for name, kind, W, H, n, _ in configs:
+            for K in waves:
+                scene, cam = make_scene(kind, n, W, H, K, seed=n + parse_waves(K)[0])
+                s = scene.map(lambda t: t.detach().requires_grad_(True))
+                for aa in antialias:
+                    settings = ANTIALIASED if aa == "on" else SETTINGS
+
+                    def fwd():
+                        with torch.no_grad():
+                            rasterize(s, cam, backend="cpu", settings=settings)
+
+                    def fwd_bwd():
+                        out = rasterize(s, cam, backend="cpu", settings=settings)
+                        (out.rgb.sum() + out.depth.sum() + out.normal.sum() + out.distortion.sum()).backward()
+
+                    row = {"scene": name, "K": K, "antialias": aa}
+                    for key, fn in (("forward", fwd), ("forward_backward", fwd_bwd)):
+                        times = {"old": [], "new": []}
+                        for r in range(repeats + 1):  # the first pair warms up
+                            for label, C in ((("old", old), ("new", new)) if r % 2 == 0 else
+                                             (("new", new), ("old", old))):
+                                native._modules["cpu"] = C
+                                t0 = time.process_time()
+                                fn()
+                                if r > 0:
+                                    times[label].append(time.process_time() - t0)
+                        row[f"old_{key}_ms"] = min(times["old"]) * 1e3
+                        row[f"new_{key}_ms"] = min(times["new"]) * 1e3
+                        row[f"{key}_ratio"] = statistics.median(b / a for a, b in zip(times["old"], times["new"]))
+                    rows.append(row)
+                    echo(f"{name:<18}{K:>5}{aa:>4}{row['old_forward_ms']:>9.2f}{row['new_forward_ms']:>9.2f}"
+                         f"{row['forward_ratio']:>7.3f}{row['old_forward_backward_ms']:>9.2f}"
+                         f"{row['new_forward_backward_ms']:>9.2f}{row['forward_backward_ratio']:>7.3f}")
+    finally:
+        native._modules["cpu"] = new
+    ratios = [r["forward_backward_ratio"] for r in rows]
+    if ratios:
+        echo(f"fwd+bwd new/old: {min(ratios):.3f} to {max(ratios):.3f}, geometric mean "
+             f"{statistics.geometric_mean(ratios):.3f}")
+    if json_path is not None:
+        from splatzoo.io import atomic_path
+
+        with atomic_path(Path(json_path)) as tmp:
+            tmp.write_text(json.dumps({"machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M"),
+                                       "against": str(library), "rows": rows}, indent=2))
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default="benchmarks/results/rasterizer.json", help="where to write the results")
@@ -305,6 +383,9 @@ def main(argv=None) -> int:
     group.add_argument("--quick", action="store_true", help="only the 128x128 scenes")
     group.add_argument("--gpu", action="store_true", help="the 1920x1080 scenes of 100k, 500k and 1M surfels (cuda)")
     ap.add_argument("--antialias", default="off", help="off, on, or off,on (both, side by side)")
+    ap.add_argument("--against", default=None, metavar="LIBRARY",
+                    help="time the cpu rasterizer against another build of it (an older commit's extension .so), "
+                         "call by call in one process")
     args = ap.parse_args(argv)
     modes = tuple(args.antialias.split(","))
     if not modes or set(modes) - {"off", "on"}:
@@ -313,6 +394,10 @@ def main(argv=None) -> int:
     from splatzoo.errors import SplatzooError
 
     try:
+        if args.against:
+            compare_builds(args.against, waves=args.waves, configs=configs, repeats=args.repeats, antialias=modes,
+                           json_path=args.json)
+            return 0
         run_benchmark(backends=args.backends, waves=args.waves, configs=configs, repeats=args.repeats,
                       json_path=args.json, antialias=modes)
     except SplatzooError as e:
