@@ -467,6 +467,19 @@ def _given(ctx: typer.Context) -> set[str]:
     return {name for name in ctx.params if getattr(ctx.get_parameter_source(name), "name", "") == "COMMANDLINE"}
 
 
+_ANTIALIAS = typer.Option(True, "--antialias/--no-antialias", help="train and render with the pixel-footprint "
+                          "filter: alias-free when rendered smaller than trained (off: 2DGS's screen filter, 1.1-1.3x "
+                          "faster on the CPU)")
+_RANDOM_DOWNSCALE = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered at 1/2 or 1/4 "
+                                 "size against the area-averaged image (with --antialias)")
+_MAX_BYTES = typer.Option(None, "--max-bytes", callback=_size_arg, help="a byte budget for the stored model (200kB, "
+                          "1.5MB): from half-way it sheds its weakest surfels or, for beta-gabor and gabor-adaptive, "
+                          "its faintest waves, whichever costs the training views least, until its file fits")
+_INIT_FROM = typer.Option(None, "--init-from", metavar="FILE", callback=_path_arg, help="start from the surfels of a "
+                          "model file (.ply from `splatzoo export` or another 2DGS/3DGS tool, or a .pt) instead of the "
+                          "dataset's points; the model and its options are the file's")
+
+
 @app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 def train_command(
     ctx: typer.Context,
@@ -504,26 +517,17 @@ def train_command(
                                    "sqrt(views per step), Adam betas to that power)"),
     nproc: int = typer.Option(1, "--nproc", help="data-parallel processes (torch.distributed: gloo on CPU, NCCL "
                               "on CUDA); each renders --batch-size views per step"),
-    antialias: bool = typer.Option(True, "--antialias/--no-antialias", help="train and render with the "
-                                   "pixel-footprint filter: alias-free when rendered smaller than trained (off: "
-                                   "2DGS's screen filter, 1.1-1.3x faster on the CPU)"),
-    random_downscale: float = typer.Option(0.0, "--random-downscale", help="fraction of training views rendered "
-                                           "at 1/2 or 1/4 size against the area-averaged image (with --antialias)"),
+    antialias: bool = _ANTIALIAS,
+    random_downscale: float = _RANDOM_DOWNSCALE,
     store: str = _STORE,
     store_finetune: float = _STORE_FINETUNE,
-    max_bytes: Optional[str] = typer.Option(None, "--max-bytes", callback=_size_arg, help="a byte budget for the "
-                                            "stored model (200kB, 1.5MB): from half-way it sheds its weakest "
-                                            "surfels or, for beta-gabor and gabor-adaptive, its faintest waves, "
-                                            "whichever costs the training views least, until its file fits"),
+    max_bytes: Optional[str] = _MAX_BYTES,
     viewer: bool = typer.Option(False, "--viewer", help="watch training live in the browser (see `splatzoo view`); "
                                 "it stays open after training until Ctrl-C"),
     viewer_port: int = typer.Option(8080, "--viewer-port", help="port of the live viewer"),
     viewer_host: str = typer.Option("127.0.0.1", "--viewer-host", help="address the live viewer listens on"),
     skip_missing: bool = _SKIP_MISSING,
-    init_from: Optional[Path] = typer.Option(None, "--init-from", metavar="FILE", callback=_path_arg,
-                                             help="start from the surfels of a model file (.ply from `splatzoo export` "
-                                             "or another 2DGS/3DGS tool, or a .pt) instead of the dataset's points; "
-                                             "the model and its options are the file's"),
+    init_from: Optional[Path] = _INIT_FROM,
 ) -> None:
     """Train a model on a dataset. Model options follow the model name, e.g. `--model gabor --n-waves 8`.
 
@@ -541,15 +545,7 @@ def train_command(
         model = initial_model(init_from).name
     out = out or Path("runs") / model
     values = {k: v for k, v in ctx.params.items() if k in _TRAIN_FIELDS}
-    watch = None
-    if viewer:
-        from .viewer import TrainingWatch
-
-        if nproc > 1:
-            raise typer.BadParameter("the live viewer watches one process; drop --viewer or --nproc")
-        watch = TrainingWatch(Path(out).name, host=viewer_host, port=viewer_port, backend=backend,
-                              snapshot_dir=Path(out) / "renders")
-        typer.echo(f"live viewer: {watch.viewer.url}")
+    watch = _start_viewer(out, nproc, viewer_host, viewer_port, backend) if viewer else None
     try:
         scene_options = _scene_options(resolution, max_width, test_every, background, white_background)
         if skip_missing:
@@ -562,11 +558,27 @@ def train_command(
         raise
     _report(result)
     if watch is not None:
-        typer.echo(f"training finished; the viewer stays open at {watch.viewer.url} (Ctrl-C to stop)")
-        try:
-            watch.viewer.serve_forever()
-        except KeyboardInterrupt:
-            typer.echo("viewer stopped")
+        _keep_viewer_open(watch)
+
+
+def _start_viewer(out, nproc: int, host: str, port: int, backend: str):
+    """--viewer: the live viewer of the run in `out`, started and its address said (one process only)."""
+    from .viewer import TrainingWatch
+
+    if nproc > 1:
+        raise typer.BadParameter("the live viewer watches one process; drop --viewer or --nproc")
+    watch = TrainingWatch(Path(out).name, host=host, port=port, backend=backend, snapshot_dir=Path(out) / "renders")
+    typer.echo(f"live viewer: {watch.viewer.url}")
+    return watch
+
+
+def _keep_viewer_open(watch) -> None:
+    """After training, the live viewer serves on until Ctrl-C."""
+    typer.echo(f"training finished; the viewer stays open at {watch.viewer.url} (Ctrl-C to stop)")
+    try:
+        watch.viewer.serve_forever()
+    except KeyboardInterrupt:
+        typer.echo("viewer stopped")
 
 
 def _data_and_model_args(data: Optional[Path], args: list[str]) -> tuple[Optional[Path], list[str]]:
