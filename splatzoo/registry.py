@@ -172,9 +172,12 @@ class AppearanceKindSpec:
     api_version: int = API_VERSION
 
 
-def _validate_appearance_kind(obj: Any, name: str) -> AppearanceKindSpec:
-    from .types import BUILTIN_KINDS
+# the names of the built-in kinds (splatzoo.types.BUILTIN_KINDS, sections of csrc/surfel_math.h), which no Python kind
+# may take: filled in by splatzoo.types, which derives them from its field table (this module sits below it)
+BUILTIN_KIND_NAMES: set[str] = set()
 
+
+def _validate_appearance_kind(obj: Any, name: str) -> AppearanceKindSpec:
     if callable(obj) and not isinstance(obj, (AppearanceKindSpec, type)):
         obj = obj()
     if not isinstance(obj, AppearanceKindSpec):
@@ -183,7 +186,7 @@ def _validate_appearance_kind(obj: Any, name: str) -> AppearanceKindSpec:
         raise PluginError(f"plugin targets splatzoo model API {obj.api_version}, this splatzoo has {API_VERSION}")
     if obj.name != name:
         raise PluginError(f"entry point name {name!r} differs from the spec's name {obj.name!r}")
-    if name in BUILTIN_KINDS:
+    if name in BUILTIN_KIND_NAMES:
         raise PluginError(f"{name!r} is a built-in appearance kind (a section of csrc/surfel_math.h); the plugin must "
                           "use another name")
     if not callable(obj.fn):

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, fields, replace
 import torch
 
 from .errors import ShapeError
+from .registry import APPEARANCE_KINDS, BUILTIN_KIND_NAMES
 
 
 @dataclass
@@ -323,8 +324,6 @@ class Surfels:
                 raise ShapeError("Surfels.appearance_params is set but appearance_kind is None; name the appearance "
                                  "kind the parameters are for")
             return
-        from .registry import APPEARANCE_KINDS
-
         spec = APPEARANCE_KINDS.get(kind)  # an unknown name lists the known ones
         shape = (n, *spec.params)
         if not isinstance(params, torch.Tensor) or tuple(params.shape) != shape:
@@ -380,6 +379,7 @@ SURFEL_FIELDS: tuple[SurfelField, ...] = tuple(
 # The appearance kinds of the table, in table order: each has its section in csrc/surfel_math.h and its twin in
 # rasterizers/reference.py, and every backend renders it. (A Python kind, Surfels.appearance_kind, is not among them.)
 BUILTIN_KINDS: tuple[str, ...] = tuple(dict.fromkeys(f.kind for f in SURFEL_FIELDS if f.kind))
+BUILTIN_KIND_NAMES.update(BUILTIN_KINDS)  # a Python appearance kind may not take a built-in kind's name
 
 
 @dataclass
