@@ -195,3 +195,19 @@ def test_a_folder_where_the_triangulation_cache_goes_is_named(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"warning: cannot keep the triangulated points in {root / CACHE_NAME}" in err, err
     assert "move or delete what is there" in err
+
+
+def test_one_fold_warning_for_both_dataset_paths():
+    """The COLMAP and transforms.json paths warn about a lens that folds back inside the photo with one text
+    (camera_models.fold_warning), naming who and the fix each path gives."""
+    import pycolmap
+
+    from splatzoo.data.camera_models import fold_warning
+
+    folding = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 100.0, 200, 200)
+    folding.params = [100.0, 100.0, 100.0, -0.5]  # k1 = -0.5: the image turns back inside the photo
+    text = fold_warning(folding, "camera 1 of sparse/0", "Re-run SfM")
+    assert text is not None and text.startswith("camera 1 of sparse/0 (SIMPLE_RADIAL:") and "folds back" in text
+    assert "ghost rings" in text and text.endswith("Re-run SfM")
+    plain = pycolmap.Camera.create_from_model_name(1, "SIMPLE_PINHOLE", 100.0, 200, 200)
+    assert fold_warning(plain, "frame_0001.png", "Check it") is None

@@ -519,7 +519,7 @@ def _undistort_views(root: Path, views: list[View], lenses: list, masks: bool) -
     undistorter makes from its lens, as the COLMAP path does; copies are made once and kept beside the dataset."""
     import sys
 
-    from .camera_models import check_lens, for_undistortion, import_pycolmap, projection_profile
+    from .camera_models import check_lens, fold_warning, for_undistortion, import_pycolmap
 
     pycolmap = import_pycolmap()
     options = pycolmap.UndistortCameraOptions()
@@ -540,12 +540,9 @@ def _undistort_views(root: Path, views: list[View], lenses: list, masks: bool) -
                                             "the focal length (typically |k1| < 0.5 and |p1|, |p2| < 0.01)")
             if warning:
                 print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
-            fold = projection_profile(lens)["fold_px"]
-            if fold is not None:
-                print(f"splatzoo: warning: {view.name} ({lens.model_name}: {lens.params_to_string()}) has distortion "
-                      f"that folds back {fold:.0f} px from the image centre, inside the photo, so the undistorted "
-                      "images show ghost rings; this calibration is probably wrong: check its distortion coefficients",
-                      file=sys.stderr, flush=True)
+            warning = fold_warning(lens, view.name, "Check its distortion coefficients")
+            if warning:
+                print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
         try:
             pinhole = pycolmap.undistort_camera(options, lens)
         except Exception as e:  # pycolmap rejects a camera it cannot invert

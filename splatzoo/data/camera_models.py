@@ -203,6 +203,18 @@ def check_finite(cam, who: str, fix: str) -> None:
                         f"numbers; {fix}")
 
 
+def fold_warning(cam, who: str, fix: str) -> str | None:
+    """The warning for a lens whose distortion folds back inside the photo (projection_profile's fold_px), which
+    undistorts into ghost rings, naming `who` (a camera, a frame) and ending with `fix`; None for a lens that does
+    not fold. One text for the COLMAP and the transforms.json paths."""
+    fold = projection_profile(cam)["fold_px"] if cam.is_perspective() else None
+    if fold is None:
+        return None
+    return (f"{who} ({model_name(cam)}: {cam.params_to_string()}) has distortion that folds back {fold:.0f} px from "
+            f"the image centre, inside the photos, so the undistorted images show ghost rings; this calibration is "
+            f"probably wrong. {fix}")
+
+
 def check_lens(cam, who: str, fix: str) -> str | None:
     """Whether `cam`'s photos can be undistorted into something to train on. Raises DataError (naming `who`, then
     `fix`) when a parameter is NaN or infinite, or when the region the undistorted image keeps (undistorted_region) is

@@ -21,8 +21,8 @@ import torch
 
 from ..errors import DataError
 from ..types import Camera
-from .camera_models import (PINHOLE_MODELS, check_finite, check_lens, check_undistortable, for_undistortion,
-                            import_pycolmap, is_pinhole, model_name, pinhole_K, projection_profile)
+from .camera_models import (PINHOLE_MODELS, check_finite, check_lens, check_undistortable, fold_warning,
+                            for_undistortion, import_pycolmap, is_pinhole, pinhole_K)
 from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_has_alpha, image_size, list_images,
                     mesh_path_of, scale_camera, split_views, target_scale)
 from .staging import replace_dir, temp_dir_beside
@@ -256,13 +256,10 @@ def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None
     print(f"splatzoo: undistorting the images of {root} into {target} (done once, reused later) ...",
           file=sys.stderr, flush=True)
     for cam in read_model(sparse).cameras.values():
-        fold = projection_profile(cam)["fold_px"] if cam.is_perspective() else None
-        if fold is not None:
-            print(f"splatzoo: warning: camera {cam.camera_id} of {sparse} ({model_name(cam)}: "
-                  f"{cam.params_to_string()}) has distortion that folds back {fold:.0f} px from the image centre, "
-                  "inside the photos, so the undistorted images show ghost rings; this fit is probably wrong. "
-                  "Re-run SfM with `splatzoo sfm IMAGES --out DATA --camera-model SIMPLE_PINHOLE`",
-                  file=sys.stderr, flush=True)
+        warning = fold_warning(cam, f"camera {cam.camera_id} of {sparse}", "Re-run SfM with `splatzoo sfm IMAGES "
+                               "--out DATA --camera-model SIMPLE_PINHOLE`")
+        if warning:
+            print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_dir_beside(target)
     try:
