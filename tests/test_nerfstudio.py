@@ -83,7 +83,7 @@ def test_the_reader_gives_back_the_model_as_trained(tmp_path, gabor):
 def test_the_method_folder_reads_its_newest_run_and_an_unfinished_run_says_so(tmp_path, gabor):
     _output(tmp_path / "splatzoo-gabor" / "2024-01-01_000000", gabor)
     _output(tmp_path / "splatzoo-gabor" / "2024-02-01_000000", gabor, steps=(99,), iteration=100)
-    model, file, note = open_nerfstudio_output(tmp_path / "splatzoo-gabor")
+    _, file, note = open_nerfstudio_output(tmp_path / "splatzoo-gabor")
     assert file.parts[-3] == "2024-02-01_000000" and file.name == "step-000000099.ckpt"
     assert "newest of 2 runs" in note and "unfinished: iteration 100 of 300" in note
     assert read_nerfstudio_output(tmp_path / "splatzoo-gabor").num_primitives == 300
@@ -234,7 +234,7 @@ def _final_state(out: Path) -> dict:
 
 @nerfstudio_test
 def test_ns_train_trains_through_splatzoos_step(trained):
-    root, data, out = trained
+    _, _, out = trained
     names = [p.name for p in sorted((out / "nerfstudio_models").iterdir())]
     assert names == [f"step-{s:09d}.ckpt" for s in (100, 200, STEPS - 1)]
     state = _final_state(out)
@@ -263,7 +263,7 @@ def test_ns_eval_scores_as_splatzoo_eval(trained):
 
 @nerfstudio_test
 def test_ns_render_writes_a_video(trained):
-    root, data, out = trained
+    root, _, out = trained
     video = root / "interpolate.mp4"
     _run([_ns("ns-render"), "interpolate", "--load-config", str(out / "config.yml"), "--output-path", str(video),
           "--interpolation-steps", "2", "--frame-rate", "4"], root)
@@ -272,7 +272,7 @@ def test_ns_render_writes_a_video(trained):
 
 @nerfstudio_test
 def test_ns_viewer_page_answers(trained):
-    root, data, out = trained
+    root, _, out = trained
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]

@@ -3,7 +3,6 @@ splatzoo's own images when the dataparser is splatzoo-data (dataparser.py). Impo
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Type
 
 import torch
 from nerfstudio.configs.dataparser_configs import AnnotatedDataParserUnion
@@ -40,5 +39,5 @@ class SplatzooDatamanager(FullImageDatamanager[SplatzooDataset]):
 
 @dataclass
 class SplatzooDatamanagerConfig(FullImageDatamanagerConfig):
-    _target: Type = field(default_factory=lambda: SplatzooDatamanager)
+    _target: type = field(default_factory=lambda: SplatzooDatamanager)
     dataparser: AnnotatedDataParserUnion = field(default_factory=SplatzooDataParserConfig)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Type
 
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
@@ -58,12 +57,12 @@ def _masks(value: str):
 class SplatzooDataParserConfig(DataParserConfig):
     """Any dataset folder splatzoo reads, as `splatzoo train` reads it (options as `splatzoo train`'s)."""
 
-    _target: Type = field(default_factory=lambda: SplatzooDataParser)
+    _target: type = field(default_factory=lambda: SplatzooDataParser)
     data: Path = Path()
     """The dataset folder (COLMAP, Blender / nerfstudio transforms, instant-ngp, a splatzoo synthetic scene)."""
-    resolution: Optional[int] = None
+    resolution: int | None = None
     """Downscale factor 1, 2, 4 or 8 (uses images_<n>/ when present)."""
-    max_width: Optional[int] = None
+    max_width: int | None = None
     """Cap on the image width in pixels (default: photos wider than 1600 px are downscaled to it)."""
     test_every: int = 8
     """Images sorted by name, every test_every-th is a test view (0: no test split)."""

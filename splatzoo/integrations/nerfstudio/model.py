@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import sys
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
@@ -41,7 +40,7 @@ class SplatzooModelConfig(ModelConfig):
     """A splatzoo member in nerfstudio. methods.py makes one subclass a member, whose fields are the member's own
     options (n_waves, ...) and splatzoo's training options (lambda_dssim, densify, strategy, seed, ...)."""
 
-    _target: Type = field(default_factory=lambda: SplatzooModel)
+    _target: type = field(default_factory=lambda: SplatzooModel)
     enable_collider: bool = False
     member: str = "gabor"
     """The splatzoo model trained (set by the method)."""
@@ -169,10 +168,10 @@ class SplatzooModel(Model):
         return View.from_tensor(camera_of(camera), batch["image"], background=background)
 
     # --- nerfstudio's model interface --------------------------------------------------------------------------
-    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+    def get_param_groups(self) -> dict[str, list[Parameter]]:
         return {}  # splatzoo's Adam steps the parameters (densification edits it): nerfstudio's optimizers have none
 
-    def get_outputs(self, camera: Cameras) -> Dict[str, torch.Tensor]:
+    def get_outputs(self, camera: Cameras) -> dict[str, torch.Tensor]:
         """rgb [H,W,3], accumulation [H,W,1], depth [H,W,1] (distance along the ray, as nerfstudio's viewer reads it)
         and normal [H,W,3] (mapped to [0,1]) of one camera."""
         if not isinstance(camera, Cameras):
@@ -188,7 +187,7 @@ class SplatzooModel(Model):
         return outputs
 
     @torch.no_grad()
-    def get_outputs_for_camera(self, camera: Cameras, obb_box: Optional[OrientedBox] = None) -> Dict[str, torch.Tensor]:
+    def get_outputs_for_camera(self, camera: Cameras, obb_box: OrientedBox | None = None) -> dict[str, torch.Tensor]:
         return self.get_outputs(camera.to(self.device))
 
     @staticmethod
@@ -200,17 +199,17 @@ class SplatzooModel(Model):
             gt = gt[..., :3] * gt[..., 3:]
         return gt.to(outputs["rgb"].device)
 
-    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+    def get_metrics_dict(self, outputs, batch) -> dict[str, torch.Tensor]:
         mse = ((outputs["rgb"].detach() - self._target(outputs, batch)) ** 2).mean()
         return {"psnr": -10 * torch.log10(mse.clamp_min(1e-10))}
 
-    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> dict[str, torch.Tensor]:
         from ...training.losses import photometric_loss
 
         lambda_dssim = getattr(self.config, "lambda_dssim", 0.2)
         return {"photometric": photometric_loss(outputs["rgb"], self._target(outputs, batch), lambda_dssim)}
 
-    def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+    def get_image_metrics_and_images(self, outputs, batch) -> tuple[dict[str, float], dict[str, torch.Tensor]]:
         """PSNR, SSIM and LPIPS as `splatzoo eval` computes them (LPIPS v0.1 VGG on [0,1] inputs, the 3DGS
         convention; none for images under 32 px), and the target beside the render."""
         from ...evaluate import LPIPS_CONVENTION, LPIPS_NET
@@ -254,9 +253,12 @@ def _sharing(checkpoint: dict, net) -> dict:
     """`checkpoint` with the model's own tensors where its state holds copies (on a GPU, checkpoint() copies them to
     the CPU): saved once in nerfstudio's file, beside the parameter entries that hold the same storage."""
     live = net.state_dict()
-    state = {k: live[k] if k in live and live[k].shape == v.shape and live[k].dtype == v.dtype else v
-             for k, v in checkpoint["state"].items()}
-    return {**checkpoint, "state": state}
+
+    def same(k, v) -> bool:
+        return k in live and live[k].shape == v.shape and live[k].dtype == v.dtype and (
+            live[k].data_ptr() == v.data_ptr() or torch.equal(live[k].to(v.device), v))
+
+    return {**checkpoint, "state": {k: live[k] if same(k, v) else v for k, v in checkpoint["state"].items()}}
 
 
 def camera_of(camera: Cameras):
@@ -265,7 +267,10 @@ def camera_of(camera: Cameras):
         raise SplatzooError(f"splatzoo renders one camera at a time, got a batch of shape {tuple(camera.shape)}")
     if int(camera.camera_type.flatten()[0]) != CameraType.PERSPECTIVE.value:
         raise SplatzooError("splatzoo renders pinhole (perspective) cameras; undistort the images first")
-    flat = lambda t: t.reshape(-1)[0]  # noqa: E731
+
+    def flat(t):
+        return t.reshape(-1)[0]
+
     return splatzoo_camera(camera.camera_to_worlds.reshape(-1, 3, 4)[0], flat(camera.fx), flat(camera.fy),
                            flat(camera.cx), flat(camera.cy), int(flat(camera.width)), int(flat(camera.height)))
 

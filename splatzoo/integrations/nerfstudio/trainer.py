@@ -5,7 +5,7 @@ and densifies. nerfstudio keeps its loop, viewer, logging, evaluation and checkp
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, Type
+from typing import Literal
 
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -18,7 +18,7 @@ class SplatzooTrainerConfig(TrainerConfig):
     """nerfstudio's training configuration with splatzoo's step. max_num_iterations is the length of splatzoo's
     schedule (its learning-rate decay and densification windows scale with it, as `splatzoo train --iterations`)."""
 
-    _target: Type = field(default_factory=lambda: SplatzooTrainer)
+    _target: type = field(default_factory=lambda: SplatzooTrainer)
 
 
 class SplatzooTrainer(Trainer):

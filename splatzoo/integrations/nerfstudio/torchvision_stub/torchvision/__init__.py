@@ -3,3 +3,4 @@
 from . import transforms, utils
 
 __version__ = "0.28.0+splatzoo.stub"
+__all__ = ["transforms", "utils"]
