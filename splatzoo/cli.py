@@ -423,6 +423,10 @@ def _model_file(run: Path, data: Optional[Path]) -> bool:
                             "`splatzoo train` (its --out) or a model file (.ply, .pt) with --data")
     if run.is_file():
         return True
+    from .integrations.nerfstudio import is_nerfstudio_output
+
+    if is_nerfstudio_output(run):  # a model without its dataset on record, as a model file
+        return True
     if data is not None:
         from .runs import Run
 

@@ -109,7 +109,10 @@ def format_of(path) -> ModelFormat:
     if not exists:
         raise SplatzooError(f"{path} does not exist; pass a run directory written by `splatzoo train`, a model .pt "
                             "or a model .ply")
-    folder = next((fmt for fmt in FORMATS.values() if fmt.folder), None)
+    folders = [fmt for fmt in FORMATS.values() if fmt.folder]
+    # a folder format with a detect() claims the folders it recognises; the one without (run folders) takes the rest
+    folder = next((fmt for fmt in folders if fmt.detect is not None and fmt.detect(path)), None) or next(
+        (fmt for fmt in folders if fmt.detect is None), None)
     if folder is None:
         raise SplatzooError(f"{path} is a folder, and no folder format is registered: run folders are read once "
                             "splatzoo.runs is imported")
@@ -284,3 +287,20 @@ for _fmt in (
                     detect=lambda path: True)):
     register_format(_fmt)
 del _fmt
+
+
+def _read_nerfstudio(path, *, latest: bool = False):
+    from .integrations.nerfstudio import open_nerfstudio_output
+
+    return open_nerfstudio_output(path, latest=latest)
+
+
+def _nerfstudio_folder(path: Path) -> bool:
+    from .integrations.nerfstudio import is_nerfstudio_output
+
+    return is_nerfstudio_output(path)
+
+
+register_format(ModelFormat("nerfstudio", "an ns-train output folder of a splatzoo method (config.yml and "
+                            "nerfstudio_models/, splatzoo.integrations.nerfstudio)", _read_nerfstudio,
+                            detect=_nerfstudio_folder, folder=True))

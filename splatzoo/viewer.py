@@ -272,6 +272,8 @@ def _is_run_folder(path: Path) -> bool:
 def expand_runs(paths) -> list[Path]:
     """Run folders named on the command line; a folder that holds run folders (`splatzoo compare`'s output, whose
     runs are in its runs/ folder) stands for all of them, in name order."""
+    from .integrations.nerfstudio import is_nerfstudio_output
+
     runs = []
     for p in map(Path, paths):
         if not p.exists():
@@ -284,7 +286,7 @@ def expand_runs(paths) -> list[Path]:
         if not p.is_dir():
             raise SplatzooError(f"{p} is not a folder; name a run folder written by `splatzoo train` or a model file "
                                 "(.ply or .pt)")
-        if _is_run_folder(p):
+        if _is_run_folder(p) or is_nerfstudio_output(p):  # an ns-train output: its model, without cameras
             runs.append(p)
             continue
         inner = sorted(q for q in p.iterdir() if q.is_dir() and _is_run_folder(q))

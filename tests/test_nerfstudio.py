@@ -80,6 +80,27 @@ def test_the_reader_gives_back_the_model_as_trained(tmp_path, gabor):
     assert torch.equal(model.render(cam).rgb, gabor.render(cam).rgb)
 
 
+def test_splatzoo_commands_open_an_ns_train_folder(tmp_path, gabor):
+    """An ns-train output folder is a model-file format (splatzoo.model_files): load_model, export and eval --data
+    read it; a splatzoo run folder is still read as one."""
+    from typer.testing import CliRunner
+
+    from splatzoo.cli import app
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    folder = _output(tmp_path / "ns", gabor)
+    assert splatzoo.open_model(folder).format == "nerfstudio"
+    assert splatzoo.load_model(folder).num_primitives == 300
+    runner = CliRunner()
+    res = runner.invoke(app, ["export", str(folder), "--out", str(tmp_path / "m.ply")])
+    assert res.exit_code == 0 and splatzoo.load_model(tmp_path / "m.ply").num_primitives == 300, res.output
+    data = make_synthetic_scene("plain", tmp_path / "data", views=3, width=16, height=16)
+    res = runner.invoke(app, ["eval", str(folder), "--data", str(data), "--backend", "reference", "--out",
+                              str(tmp_path / "metrics.json")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "metrics.json").exists()
+
+
 def test_the_method_folder_reads_its_newest_run_and_an_unfinished_run_says_so(tmp_path, gabor):
     _output(tmp_path / "splatzoo-gabor" / "2024-01-01_000000", gabor)
     _output(tmp_path / "splatzoo-gabor" / "2024-02-01_000000", gabor, steps=(99,), iteration=100)
