@@ -33,9 +33,11 @@ def _camera() -> Camera:
     return Camera.look_at([0.0, 0.0, -2.5], [0.0, 0.0, 0.0], width=40, height=40, dtype=torch.float32)
 
 
-@pytest.mark.parametrize("backend", [b for b in ("reference", "cpu") if b in available_backends()])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 @pytest.mark.parametrize("name", MEMBERS)
 def test_a_recoloured_render_keeps_the_models_alpha(name, backend):
+    if backend not in available_backends():  # asked here, not at collection: asking builds the native extension
+        pytest.skip(f"the {backend} backend cannot run here")
     model, cam = _member(name), _camera()
     with torch.no_grad():
         own = model.render(cam, backend=backend)
