@@ -571,37 +571,36 @@ def _fit(baked, target, fit_cams: list[Camera], given: int, options: BakeOptions
 
 # --- export --------------------------------------------------------------------------------------------------
 
-def load_source(source, backend: str = "auto"):
-    """(model, cameras, the file the model was read from) of a run folder (its training cameras; orbit cameras when
-    its dataset is gone) or a model file (.pt or .ply: orbit cameras), the model on the backend's device."""
-    from .model_files import open_model
+def cameras_to_bake_from(opened) -> list[Camera]:
+    """The cameras a model from splatzoo.model_files.open_model is baked from: a run folder's training cameras, or
+    orbit cameras around the model for a model file (or a run whose dataset is gone)."""
     from .runs import Run
 
-    opened = open_model(source, backend=backend)
-    model, path = opened.model, opened.file
-    cameras = None
+    cameras = []
     if opened.format == "run":
         try:
-            cameras = [v.camera for v in Run(source).scene().train]
+            cameras = [v.camera for v in Run(opened.path).scene().train]
         except SplatzooError:  # the dataset moved, or the run trained on a scene in memory
-            cameras = None
-    return model, cameras or orbit_cameras_around(model), path
+            pass
+    return cameras or orbit_cameras_around(opened.model)
 
 
 def export_baked(source, out, *, progress=None, **options) -> Path:
     """Bake the model of `source` (a run folder or a model file) into constant-colour splats and write them to the
     PLY `out` with splatzoo.model_ply.save_ply. `options` are BakeOptions fields (strings are parsed). Reports the bake
     error in dB through `progress` (a callable, or True to print)."""
+    from .model_files import open_model
     from .model_ply import save_ply
 
     opts = bake_options(**options)
     source, out = Path(source), Path(out)
     if out.suffix.lower() != ".ply":
         raise SplatzooError(f"the baked export writes a PLY file, so --out must end in .ply; got {out}")
-    model, cameras, path = load_source(source, opts.backend)
-    if out.exists() and out.resolve() == Path(path).resolve():
-        raise SplatzooError(f"refusing to write the bake onto the model being read ({path}); choose another --out")
-    baked, report = bake_model(model, cameras, opts, progress=progress)
+    opened = open_model(source, backend=opts.backend)
+    if out.exists() and out.resolve() == opened.file.resolve():
+        raise SplatzooError(f"refusing to write the bake onto the model being read ({opened.file}); choose another "
+                            "--out")
+    baked, report = bake_model(opened.model, cameras_to_bake_from(opened), opts, progress=progress)
     path = save_ply(baked, out)
     _say(progress)(f"baked {report['splats']} splats, bake error {report['bake_db']:.2f} dB (PSNR against the "
                    "model's own renders)")

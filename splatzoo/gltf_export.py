@@ -8,10 +8,11 @@ import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .bake import BakeOptions, bake_model, bake_options, load_source, orbit_cameras_around
+from .bake import BakeOptions, bake_model, bake_options, cameras_to_bake_from, orbit_cameras_around
 from .errors import SplatzooError
 from .export import compensate_viewer_dilation
 from .gltf_splats import check_glb_path, save_glb_splats
+from .model_files import open_model
 
 VIEWER_RULES = ("exact", "3dgs")
 
@@ -63,8 +64,9 @@ def export_glb_splats(source, out, *, progress=None, viewer: str = "exact", colo
     read = source / "model.pt" if source.is_dir() else source
     if out.exists() and out.resolve() == read.resolve():
         raise SplatzooError(f"refusing to export onto the model being read ({read}); choose another --out")
-    model, cameras, _ = load_source(source, options.backend)
-    return write_glb_splats(model, out, cameras=cameras, viewer=viewer, color=color, bake=options, progress=progress)
+    opened = open_model(source, backend=options.backend)
+    return write_glb_splats(opened.model, out, cameras=cameras_to_bake_from(opened), viewer=viewer, color=color,
+                            bake=options, progress=progress)
 
 
 @dataclass

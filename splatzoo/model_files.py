@@ -79,10 +79,12 @@ def format_named(name: str) -> ModelFormat:
 
 @dataclass
 class OpenedModel:
-    """What `open_model` found: the model, the file its parameters were read from (a run folder's model.pt), the
-    format's name and a note on what was opened (e.g. an unfinished run's last checkpoint); "" when plain."""
+    """What `open_model` found: the model, the path it was asked to open (a run folder or a model file), the file its
+    parameters were read from (a run folder's model.pt), the format's name and a note on what was opened (e.g. an
+    unfinished run's last checkpoint); "" when plain."""
 
     model: Any
+    path: Path
     file: Path
     format: str
     note: str = ""
@@ -132,7 +134,7 @@ def open_model(path, *, backend: str | None = None, latest: bool = False) -> Ope
         from .rasterizers import select_backend
 
         model = model.to(select_backend(backend).torch_device())
-    return OpenedModel(model, Path(file), fmt.name, note)
+    return OpenedModel(model, path, Path(file), fmt.name, note)
 
 
 def load_model(path, *, backend: str | None = None):

@@ -298,15 +298,13 @@ def expand_runs(paths) -> list[Path]:
     return runs
 
 
-def load_source(path: Path, backend: str = "auto") -> Source:
-    """A run folder or a model file as a viewer source: its model on the backend's device (a run's trained model, or
-    the last checkpoint of an interrupted run) and a run's training views when the dataset is still where it was.
-    Anything missing or damaged is an error here, before a server starts."""
-    from .model_files import open_model
+def viewer_source(opened) -> Source:
+    """A model from splatzoo.model_files.open_model (a viewer opens with latest=True, so an interrupted run shows its
+    last checkpoint) as a viewer source: the model and, for a run folder, its training views when the dataset is still
+    where it was."""
     from .runs import Run
 
-    opened = open_model(path, backend=backend, latest=True)
-    model = opened.model
+    model, path = opened.model, opened.path
     if opened.format != "run":  # a model file (.ply from `splatzoo export` or another tool, .pt): no cameras
         return Source(label=f"{Path(path).name} ({model.name})", fixed_model=model,
                       note="a model file: no training cameras (view its run, or orbit from the default view)")
@@ -760,8 +758,11 @@ def _warn_if_open(host: str, port: int) -> None:
 
 def view(paths, *, host: str = "127.0.0.1", port: int = 8080, backend: str = "auto") -> Viewer:
     """Load the runs in `paths` and start a viewer for them (returns it started; `serve_forever()` blocks)."""
+    from .model_files import open_model
+
     runs = expand_runs(paths)
-    sources = [load_source(p, backend) for p in runs]
+    # every model is opened before a server starts: anything missing or damaged is an error here
+    sources = [viewer_source(open_model(p, backend=backend, latest=True)) for p in runs]
     _warn_if_open(host, port)
     first = runs[0]
     snapshots = first.parent / f"{first.stem}_renders" if first.is_file() else first / "renders"

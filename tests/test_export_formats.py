@@ -433,7 +433,8 @@ def tiny_data(tmp_path_factory):
 
 
 def test_eval_render_view_and_train_read_a_ply(tmp_path, tiny_data):
-    from splatzoo.viewer import Viewer, expand_runs, load_source
+    from splatzoo.model_files import open_model
+    from splatzoo.viewer import Viewer, expand_runs, viewer_source
 
     g = torch.Generator().manual_seed(1)
     model = splatzoo.create_model("2dgs", torch.randn(20, 3, generator=g) * 0.3, torch.rand(20, 3, generator=g))
@@ -449,7 +450,7 @@ def test_eval_render_view_and_train_read_a_ply(tmp_path, tiny_data):
     res = runner.invoke(app, ["eval", str(ply)])
     assert isinstance(res.exception, SplatzooError) and "--data DATA" in str(res.exception)
     # the viewer shows a model file without training cameras, framed from a camera that looks at it
-    source = load_source(expand_runs([ply])[0])
+    source = viewer_source(open_model(expand_runs([ply])[0], latest=True))
     assert source.views == [] and source.fixed_model.num_primitives == 20 and "no training cameras" in source.note
     home = Viewer([source], host="127.0.0.1", port=0, backend="reference", snapshot_dir=tmp_path).home_camera()
     with torch.no_grad():

@@ -113,7 +113,8 @@ def test_third_party_plys_that_draw_nothing_are_refused(tmp_path, text):
 
 def test_commands_refuse_a_model_that_draws_nothing(tmp_path):
     from splatzoo.data.synthetic import make_synthetic_scene
-    from splatzoo.viewer import load_source as viewer_source
+    from splatzoo.model_files import open_model
+    from splatzoo.viewer import viewer_source
 
     data = make_synthetic_scene("plain", tmp_path / "data", views=3, width=16, height=16)
     empty = _third_party(tmp_path / "empty.ply", n=0)
@@ -125,7 +126,7 @@ def test_commands_refuse_a_model_that_draws_nothing(tmp_path):
         assert isinstance(res.exception, SplatzooError) and "holds 0 surfels" in str(res.exception), (args, res.output)
     assert not (tmp_path / "run" / "model.pt").exists()
     with pytest.raises(SplatzooError, match="holds 0 surfels"):
-        viewer_source(empty)
+        viewer_source(open_model(empty, latest=True))
     # the scene checks take a loaded dataset as it is
     from splatzoo.data import load_scene
 

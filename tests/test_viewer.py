@@ -16,8 +16,9 @@ from splatzoo import Camera, Surfels, create_model
 from splatzoo.errors import SplatzooError
 from splatzoo.runs import train
 from splatzoo.training import TrainConfig
+from splatzoo.model_files import open_model
 from splatzoo.viewer import (LiveModel, Source, Viewer, browser_camera, camera_pose, check_address, expand_runs,
-                             load_source, render_layout, render_frame, surfel_cycles_per_pixel, view)
+                             render_layout, render_frame, surfel_cycles_per_pixel, view, viewer_source)
 
 pytest.importorskip("viser")
 
@@ -59,8 +60,13 @@ def test_camera_round_trip():
                               atol=1e-10)
 
 
+def _cpu_source(path) -> Source:
+    """`path` as `splatzoo view` opens it, on the CPU."""
+    return viewer_source(open_model(path, backend="cpu", latest=True))
+
+
 def test_render_modes(compare_dir):
-    gabor = load_source(compare_dir / "gabor", "cpu")
+    gabor = _cpu_source(compare_dir / "gabor")
     model, cam = gabor.model(), gabor.views[0].camera
     images = {mode: render_frame(model, cam, mode, backend="cpu")
               for mode in ("rgb", "depth", "normal", "alpha", "surfels", "waves", "frequency")}
@@ -71,7 +77,7 @@ def test_render_modes(compare_dir):
     alpha = images["alpha"][..., 0].astype(float) / 255
     assert alpha[24, 24] > 0.5 and alpha[0, 0] < 0.2 and np.all(images["alpha"][..., 0] == images["alpha"][..., 2])
     # 2DGS has no waves: its wave map is the colour map's zero everywhere a surfel covers
-    two = load_source(compare_dir / "2dgs", "cpu").model()
+    two = _cpu_source(compare_dir / "2dgs").model()
     waves = render_frame(two, cam, "waves", backend="cpu").astype(float)
     assert waves.max() < 10  # inferno's zero is black
     with pytest.raises(SplatzooError, match="render mode"):
@@ -95,7 +101,7 @@ def test_frequency_against_nyquist():
 
 
 def test_side_by_side_shares_the_camera(compare_dir):
-    a, b = load_source(compare_dir / "gabor", "cpu"), load_source(compare_dir / "2dgs", "cpu")
+    a, b = _cpu_source(compare_dir / "gabor"), _cpu_source(compare_dir / "2dgs")
     cam = a.views[1].camera.scaled(2.0)  # 96 x 96
     both = render_layout([a.model(), b.model()], cam, "rgb", [a.background, b.background], backend="cpu", gap=2)
     assert both.shape == (96, 96, 3)
@@ -121,12 +127,12 @@ def test_runs_are_checked_before_a_server_starts(compare_dir, tmp_path):
     shutil.copytree(compare_dir / "gabor", broken)
     (broken / "model.pt").write_bytes(b"not a model")
     with pytest.raises(SplatzooError, match="model.pt"):
-        load_source(broken, "cpu")
+        _cpu_source(broken)
     started = tmp_path / "started"
     started.mkdir()
     shutil.copy(compare_dir / "gabor" / "config.json", started)
     with pytest.raises(SplatzooError, match="no model yet"):
-        load_source(started, "cpu")
+        _cpu_source(started)
     r = subprocess.run([sys.executable, "-m", "splatzoo", "view", str(tmp_path / "missing")], capture_output=True,
                        text=True)
     assert r.returncode == 2 and "does not exist" in r.stderr and "Traceback" not in r.stderr
