@@ -51,3 +51,18 @@ def any_backend(request):
 @pytest.fixture
 def native_backend(request):
     return backend_for_test(request.param)
+
+
+@pytest.fixture(scope="module")
+def trained_2dgs(tmp_path_factory):
+    """A small 2dgs model trained on a synthetic scene, its test view and its run folder."""
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.runs import load_run, train
+    from splatzoo.training import TrainConfig
+
+    root = tmp_path_factory.mktemp("trained_2dgs")
+    data = make_synthetic_scene("sweater", root / "data", views=10, width=64, height=64, background=(1, 1, 1))
+    train(data, "2dgs", {}, TrainConfig(iterations=300, backend="cpu", num_primitives=1000, densify=False),
+          root / "2dgs", progress=False, evaluate_at_end=False)
+    model, scene, _ = load_run(root / "2dgs", "cpu")
+    return model, scene.test[0], root / "2dgs"

@@ -101,29 +101,19 @@ def test_splats_land_on_their_pixels(browser, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def trained_2dgs(tmp_path_factory):
-    """A small 2dgs model trained on a synthetic scene, its test view and the PLY export."""
-    from splatzoo.data.synthetic import make_synthetic_scene
-    from splatzoo.runs import load_run, train
-    from splatzoo.training import TrainConfig
-
-    root = tmp_path_factory.mktemp("browser_viewers")
-    data = make_synthetic_scene("sweater", root / "data", views=10, width=64, height=64, background=(1, 1, 1))
-    train(data, "2dgs", {}, TrainConfig(iterations=300, backend="cpu", num_primitives=1000, densify=False),
-          root / "2dgs", progress=False, evaluate_at_end=False)
-    model, scene, _ = load_run(root / "2dgs", "cpu")
-    ply = save_ply(model, root / "2dgs.ply")
-    return model, scene.test[0], ply
+def trained_2dgs_ply(trained_2dgs, tmp_path_factory):
+    """The PLY export of the trained_2dgs model (tests/conftest.py)."""
+    return save_ply(trained_2dgs[0], tmp_path_factory.mktemp("browser_viewers") / "2dgs.ply")
 
 
-def test_2dgs_export_in_viewers_matches_splatzoo(browser, trained_2dgs):
+def test_2dgs_export_in_viewers_matches_splatzoo(browser, trained_2dgs, trained_2dgs_ply):
     """The target: a 2dgs export rendered by a third-party viewer with its default settings scores within 2 dB of
     splatzoo's own render against the ground truth. Both viewers draw each surfel as a screen-space Gaussian (an
     affine projection, 8-bit colours, their own 0.3 px^2 dilation: Spark rescales the opacity, GS3D does not) where
     splatzoo intersects rays with the surfel. This small model is coarse, so the dilation costs little here and both
     stay above 25 dB from splatzoo's render; on a finer model GS3D's default loses more (about 2.8 dB at 25.5 dB, see
     benchmarks/bench_browser_viewers.py)."""
-    model, view, ply = trained_2dgs
+    (model, view, _), ply = trained_2dgs, trained_2dgs_ply
     bg = (1.0, 1.0, 1.0)
     gt = view.image_float().double().numpy()
     with torch.no_grad():
@@ -143,8 +133,8 @@ def test_2dgs_export_in_viewers_matches_splatzoo(browser, trained_2dgs):
 MATCHED = {"spark": {"blurAmount": 0.1, "sortRadial": False}, "gs3d": {"antialiased": True, "kernel2DSize": 0.1}}
 
 
-def test_matched_viewer_settings_draw_splatzoo_render(browser, trained_2dgs):
-    model, view, ply = trained_2dgs
+def test_matched_viewer_settings_draw_splatzoo_render(browser, trained_2dgs, trained_2dgs_ply):
+    (model, view, _), ply = trained_2dgs, trained_2dgs_ply
     assert model.antialias  # the training default
     with torch.no_grad():
         own = model.render(view.camera, background=torch.ones(3), backend="cpu").rgb.clamp(0, 1).double().numpy()
@@ -201,7 +191,7 @@ def test_threejs_reads_the_mesh_files(browser, tmp_path):
         browser.load_mesh(tmp_path / "missing.glb")
 
 
-def test_viewers_open_the_compressed_exports(browser, trained_2dgs, tmp_path):
+def test_viewers_open_the_compressed_exports(browser, trained_2dgs, trained_2dgs_ply, tmp_path):
     """`splatzoo export --format spz` and `sog` (through splat-transform) open in Spark and draw what the PLY draws,
     up to the formats' quantisation. (SPZ version 4, gzip-free, is refused by Spark 2.2: "Invalid gzip header"; the
     default is 3.)"""
@@ -216,7 +206,7 @@ def test_viewers_open_the_compressed_exports(browser, trained_2dgs, tmp_path):
             pytest.fail(str(e))
         pytest.skip(str(e))
 
-    model, view, ply = trained_2dgs
+    (model, view, _), ply = trained_2dgs, trained_2dgs_ply
     # (GaussianSplats3D 0.4.7 reads no SOG, and never finishes loading an SPZ from splat-transform: not tested)
     for viewer, formats in (("spark", ("spz", "sog")),):
         reference = browser.render(ply, view.camera, viewer=viewer)

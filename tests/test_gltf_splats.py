@@ -548,21 +548,6 @@ def test_khronos_validator_finds_nothing_else(tmp_path):
 # --- PlayCanvas, a real reader of KHR_gaussian_splatting -------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def trained_2dgs(tmp_path_factory):
-    """A small 2dgs model trained on a synthetic scene, its test view and its run folder."""
-    from splatzoo.data.synthetic import make_synthetic_scene
-    from splatzoo.runs import load_run, train
-    from splatzoo.training import TrainConfig
-
-    root = tmp_path_factory.mktemp("gltf_splats")
-    data = make_synthetic_scene("sweater", root / "data", views=10, width=64, height=64, background=(1, 1, 1))
-    train(data, "2dgs", {}, TrainConfig(iterations=300, backend="cpu", num_primitives=1000, densify=False),
-          root / "2dgs", progress=False, evaluate_at_end=False)
-    model, scene, _ = load_run(root / "2dgs", "cpu")
-    return model, scene.test[0], root / "2dgs"
-
-
-@pytest.fixture(scope="module")
 def playcanvas():
     reason = bv.missing(bv.GLTF_PACKAGES)
     if reason:
