@@ -128,8 +128,8 @@ def test_a_file_where_the_undistorted_copies_go_is_named(tmp_path):
         load_scene(root, test_every=0)
     root = write_capture(tmp_path / "c", "OPENCV", {"k1": 0.05}, colmap=True)
     (root / "undistorted").write_text("notes\n")
-    with pytest.raises(DataError, match=r"undistorted is a file, but splatzoo keeps the undistorted copy .* move or "
-                                        "delete that file"):
+    with pytest.raises(DataError, match=r"undistorted is a file, but splatzoo keeps the undistorted copies .* move "
+                                        "or delete that file"):
         load_scene(root, test_every=0)
     assert (root / "undistorted").read_text() == "notes\n"
     assert not [p.name for p in root.iterdir() if p.name.startswith(".undistorted")]

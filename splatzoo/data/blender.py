@@ -18,10 +18,11 @@ from the origin), and the same proportion at any other scale. scene.notes says w
 nerfstudio / instant-ngp additions, all read at the top level or per frame (a frame's value wins):
 - lens distortion: camera_model (nerfstudio: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV,
   OPENCV_FISHEYE; instant-ngp: is_fisheye) with k1, k2, k3, k4, p1, p2 (or nerfstudio's distortion_params list).
-  Distorted photos are undistorted as the COLMAP path does (pycolmap's undistorter: the same PINHOLE camera, the same
-  crop) into DATA/undistorted-transforms/ (masks and alpha too), once; later loads reuse the files. A projection
-  that is not perspective (EQUIRECTANGULAR, ...) is refused by name, and so is a lens whose undistorted photos would
-  keep under half the photo's width or height (a warning under 80%: camera_models.check_lens, as the COLMAP path).
+  Distorted photos are undistorted as the COLMAP path does (splatzoo.data.undistort: pycolmap's undistorter, the same
+  PINHOLE camera, the same crop) into DATA/undistorted-transforms/ (masks and alpha too), once; later loads reuse the
+  files. A projection that is not perspective (EQUIRECTANGULAR, ...) is refused by name, and so is a lens whose
+  undistorted photos would keep under half the photo's width or height (a warning under 80%: camera_models.check_lens,
+  as the COLMAP path).
 - applied_transform / applied_scale: see _points_frame (how the point cloud is put in the frames' frame).
 - frames whose image is missing stop loading with an error that names them and the skip_missing option
   (--skip-missing); with it they are left out and scene.notes says which. So do frames whose mask_path names a mask
@@ -41,8 +42,7 @@ from ..errors import DataError
 from ..io import ply_type_name, read_ply_vertices
 from ..types import Camera
 from .scene import (DatasetFormat, MissingMaskError, Scene, View, camera_extent, check_cameras, find_mask,
-                    image_has_alpha, image_size, mesh_path_of, read_image, read_mask, scale_camera, split_views,
-                    target_scale)
+                    image_has_alpha, image_size, mesh_path_of, scale_camera, split_views, target_scale)
 
 RANDOM_POINTS = 10_000
 MIN_TRIANGULATED = 100     # fewer triangulated points than this: random points instead
@@ -438,7 +438,7 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
     if lenses:
         # the checks load_scene makes (in float32, as training sees them), before any photo is warped
         check_cameras([View(camera=scale_camera(v.camera, 1.0), name=v.name) for v in views], meta_path)
-        _undistort_views(root, views, lenses, masks)
+        _undistort_views(root, views, lenses)
         found.distorted = len(lenses)
     for v in views:
         v.camera = scale_camera(v.camera, target_scale(v.camera.width, v.camera.height, resolution, max_width))
@@ -447,135 +447,21 @@ def _views_from(root: Path, meta_path: Path, background, masks: bool, resolution
 
 # --- undistortion ------------------------------------------------------------------------------------------------
 
-def _undistorted_dir(root: Path) -> Path:
-    """DATA/undistorted-transforms/, or a per-dataset folder under ~/.cache/splatzoo when DATA is read-only."""
-    import hashlib
-    import os
-
-    if os.access(root, os.W_OK):
-        return root / UNDISTORTED_DIR
-    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "splatzoo" / UNDISTORTED_DIR
-    return cache / hashlib.sha1(str(root.resolve()).encode()).hexdigest()[:16]
+_LENS_FIX = (f"check the distortion coefficients ({', '.join(DISTORTION_KEYS)} or distortion_params): they are "
+             "unitless, for image coordinates divided by the focal length (typically |k1| < 0.5 and |p1|, |p2| < 0.01)")
 
 
-def _stamp(lens, *files: Path | None) -> str:
-    """What an undistorted file was made from: the camera and each source file's path, size and time."""
-    import hashlib
+def _undistort_views(root: Path, views: list[View], lenses: list) -> None:
+    """Point each distorted view at the undistorted copy of its photo (and mask) and at the PINHOLE camera it was
+    warped to (splatzoo.data.undistort, as the COLMAP path does)."""
+    from .undistort import DistortedPhoto, undistort_photos
 
-    h = hashlib.sha1(f"{lens.model_name}|{lens.width}x{lens.height}|{list(lens.params)!r}".encode())
-    for f in files:
-        if f is not None:
-            st = f.stat()
-            h.update(f"|{f.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
-    return h.hexdigest()[:12]
-
-
-def _warp(options, lens, px: np.ndarray) -> np.ndarray:
-    """pycolmap's undistortion of uint8 [H,W,3] or [H,W] pixels (the COLMAP path's own warp)."""
-    from .camera_models import import_pycolmap
-
-    pycolmap = import_pycolmap()
-    out, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(np.ascontiguousarray(px)), lens)
-    return np.asarray(out.to_array())
-
-
-def _write_png(path: Path, px: np.ndarray) -> None:
-    """Write atomically (a temporary file, then rename): a cache file is whole or absent."""
-    import os
-    import tempfile
-
-    import cv2
-
-    if px.ndim == 3:
-        px = px[:, :, [2, 1, 0, 3]] if px.shape[2] == 4 else px[:, :, ::-1]
-    ok, data = cv2.imencode(".png", np.ascontiguousarray(px))
-    if not ok:
-        raise DataError(f"cannot encode the undistorted image {path}")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except (FileExistsError, NotADirectoryError):
-        blocking = next((p for p in reversed(path.parents) if p.exists() and not p.is_dir()), path.parent)
-        raise DataError(f"cannot write the undistorted image {path}: {blocking} is a file where splatzoo needs a "
-                        "folder; move or delete that file and load again") from None
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".png")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    import re
-
-    # earlier versions of this file (another stamp), left by a changed photo or camera
-    pattern = re.compile(re.escape(path.name.rsplit(".", 2)[0]) + r"\.[0-9a-f]{12}\.png")
-    for stale in path.parent.iterdir():
-        if stale != path and pattern.fullmatch(stale.name):
-            stale.unlink(missing_ok=True)
-
-
-def _undistort_views(root: Path, views: list[View], lenses: list, masks: bool) -> None:
-    """Point each distorted view at an undistorted copy of its photo (and mask) with the PINHOLE camera pycolmap's
-    undistorter makes from its lens, as the COLMAP path does; copies are made once and kept beside the dataset."""
-    import sys
-
-    from .camera_models import check_lens, fold_warning, for_undistortion, import_pycolmap
-
-    pycolmap = import_pycolmap()
-    options = pycolmap.UndistortCameraOptions()
-    target = _undistorted_dir(root)
-    if target.exists() and not target.is_dir():
-        raise DataError(f"{target} is a file, but splatzoo keeps the undistorted copies of {root}'s photos in a folder "
-                        "of that name; move or delete that file and load again")
-    jobs = []
-    warned = set()
-    for index, lens, who in lenses:
-        view = views[index]
-        lens = for_undistortion(lens) or lens   # a fisheye lens with zero terms is still warped (camera_models.py)
-        key = (lens.model_name, tuple(lens.params), lens.width, lens.height)
-        if key not in warned:
-            warned.add(key)
-            warning = check_lens(lens, who, f"check the distortion coefficients ({', '.join(DISTORTION_KEYS)} or "
-                                            "distortion_params): they are unitless, for image coordinates divided by "
-                                            "the focal length (typically |k1| < 0.5 and |p1|, |p2| < 0.01)")
-            if warning:
-                print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
-            warning = fold_warning(lens, view.name, "Check its distortion coefficients")
-            if warning:
-                print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
-        try:
-            pinhole = pycolmap.undistort_camera(options, lens)
-        except Exception as e:  # pycolmap rejects a camera it cannot invert
-            raise DataError(f"cannot undistort {view.name}: pycolmap rejects its camera ({lens.model_name}: "
-                            f"{lens.params_to_string()}): {e}; check the distortion terms") from None
-        w, h = int(pinhole.width), int(pinhole.height)
-        if not (1 <= w <= 4 * lens.width and 1 <= h <= 4 * lens.height):
-            raise DataError(f"cannot undistort {view.name}: its camera ({lens.model_name}: {lens.params_to_string()}) "
-                            f"would become a {w}x{h} image from a {lens.width}x{lens.height} photo; check the "
-                            "distortion terms")
-        stem = Path(view.name).with_suffix("")
-        mask_src = view.mask_path if masks else None
-        out = target / f"{stem}.{_stamp(lens, view.path)}.png"
-        mask_out = target / "masks" / f"{stem}.{_stamp(lens, mask_src)}.png" if mask_src is not None else None
-        if not out.is_file() or (mask_out is not None and not mask_out.is_file()):
-            jobs.append((view, lens, out, mask_src, mask_out))
-        K = np.array([[pinhole.focal_length_x, 0, pinhole.principal_point_x],
-                      [0, pinhole.focal_length_y, pinhole.principal_point_y], [0, 0, 1]], dtype=np.float64)
-        view.camera = Camera(view.camera.world_to_camera, torch.from_numpy(K), w, h, view.camera.name)
-        view.path, view.mask_path = out, mask_out
-    if jobs:
-        print(f"splatzoo: undistorting {len(jobs)} image(s) of {root} into {target} (done once, reused later) ...",
-              file=sys.stderr, flush=True)
-    for view, lens, out, mask_src, mask_out in jobs:
-        source = root / view.name
-        if not out.is_file():
-            px = read_image(source)
-            warped = _warp(options, lens, px[:, :, :3])
-            if px.shape[2] == 4:   # alpha is warped by the same map
-                warped = np.concatenate([warped, _warp(options, lens, px[:, :, 3])[:, :, None]], axis=2)
-            _write_png(out, warped)
-        if mask_out is not None and not mask_out.is_file():
-            _write_png(mask_out, _warp(options, lens, read_mask(mask_src)))
+    photos = [DistortedPhoto(views[i].path, lens, who, views[i].mask_path) for i, lens, who in lenses]
+    for (i, _, _), copy in zip(lenses, undistort_photos(root, UNDISTORTED_DIR, photos, _LENS_FIX)):
+        view = views[i]
+        view.camera = Camera(view.camera.world_to_camera, torch.from_numpy(copy.K), copy.width, copy.height,
+                             view.camera.name)
+        view.path, view.mask_path = copy.path, copy.mask
 
 
 def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:

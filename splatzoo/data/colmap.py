@@ -1,18 +1,14 @@
 """COLMAP datasets: images/ + sparse/0/ (binary or text), read with pycolmap.
 
-PINHOLE and SIMPLE_PINHOLE cameras (and other models with every distortion term zero) load directly. Any other
-perspective model (SIMPLE_RADIAL, OPENCV, division, fisheye, ...) is undistorted once with pycolmap into
-DATA/undistorted/ (images, masks and a PINHOLE model) and that copy is used from then on; it is rebuilt when the
-sparse model changes. Non-perspective models (EQUIRECTANGULAR) are an error that names them; see camera_models.py.
+PINHOLE and SIMPLE_PINHOLE cameras (and other models with every distortion term zero) load directly. The photos of
+any other perspective model (SIMPLE_RADIAL, OPENCV, division, fisheye, ...) are undistorted once with pycolmap into
+DATA/undistorted/ (with their masks; splatzoo.data.undistort, as the transforms.json path does) and those copies are
+used from then on; a copy is made again when its photo or camera changes. Non-perspective models (EQUIRECTANGULAR) are
+an error that names them; see camera_models.py.
 """
 from __future__ import annotations
 
-import hashlib
-import json
-import os
-import shutil
 import struct
-import tempfile
 from collections import defaultdict
 from pathlib import Path
 
@@ -21,14 +17,13 @@ import torch
 
 from ..errors import DataError
 from ..types import Camera
-from .camera_models import (PINHOLE_MODELS, check_finite, check_lens, check_undistortable, fold_warning,
-                            for_undistortion, import_pycolmap, is_pinhole, pinhole_K)
+from .camera_models import (PINHOLE_MODELS, check_finite, check_undistortable, import_pycolmap, is_pinhole,
+                            pinhole_K)
 from .scene import (DatasetFormat, Scene, View, camera_extent, find_mask, image_has_alpha, image_size, list_images,
                     mesh_path_of, scale_camera, split_views, target_scale)
-from .staging import replace_dir, temp_dir_beside
 
 __all__ = ["PINHOLE_MODELS", "import_pycolmap", "quiet_colmap", "find_sparse_dir", "is_colmap", "read_model",
-           "undistort", "load_colmap", "write_model", "FORMAT"]
+           "load_colmap", "write_model", "FORMAT"]
 MODEL_FILES = ("cameras", "images", "points3D")
 UNDISTORTED_DIR = "undistorted"
 
@@ -196,20 +191,6 @@ def check_binary_file(path: Path) -> None:
     r.done()
 
 
-def _model_stamp(sparse: Path, images_dir: Path, masks_dir: Path | None) -> str:
-    """Fingerprint of what an undistorted copy was made from: model file contents plus image names."""
-    h = hashlib.sha1()
-    for n in MODEL_FILES:
-        for ext in (".bin", ".txt"):
-            f = sparse / (n + ext)
-            if f.is_file():
-                h.update(f.name.encode())
-                h.update(f.read_bytes())
-    h.update(str(images_dir.resolve()).encode())
-    h.update(str(masks_dir.resolve() if masks_dir else "").encode())
-    return h.hexdigest()
-
-
 def quiet_colmap(level: int = 1):
     """Silence pycolmap's log lines below `level` (glog: 1 = warnings, 2 = errors) for the duration of a call;
     our own progress messages say what is happening."""
@@ -228,111 +209,41 @@ def quiet_colmap(level: int = 1):
     return cm()
 
 
-def undistort(root: Path, sparse: Path, images_dir: Path, masks_dir: Path | None) -> Path:
-    """Undistorted copy of the dataset (PINHOLE cameras) in root/undistorted/, reused while it is current.
-
-    Masks (masks/<image name> or masks/<stem>.png) are warped by the same maps. If the dataset folder is not
-    writable the copy goes to ~/.cache/splatzoo/undistorted/<fingerprint>/ instead.
-    """
-    pycolmap = import_pycolmap()
-
-    stamp = _model_stamp(sparse, images_dir, masks_dir)
-    target = root / UNDISTORTED_DIR
-    if not os.access(root, os.W_OK):
-        cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "splatzoo" / UNDISTORTED_DIR
-        target = cache / stamp[:16]
-    if target.exists() and not target.is_dir():
-        raise DataError(f"{target} is a file, but splatzoo keeps the undistorted copy of {root} (PINHOLE images and "
-                        "model) in a folder of that name; move or delete that file and load again")
-    stamp_file = target / "source.json"
-    if stamp_file.is_file():
-        try:
-            if json.loads(stamp_file.read_text()).get("stamp") == stamp:
-                return target
-        except (OSError, ValueError):
-            pass
-    import sys
-
-    print(f"splatzoo: undistorting the images of {root} into {target} (done once, reused later) ...",
-          file=sys.stderr, flush=True)
-    for cam in read_model(sparse).cameras.values():
-        warning = fold_warning(cam, f"camera {cam.camera_id} of {sparse}", "Re-run SfM with `splatzoo sfm IMAGES "
-                               "--out DATA --camera-model SIMPLE_PINHOLE`")
-        if warning:
-            print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temp_dir_beside(target)
-    try:
-        source = _undistortable_model(sparse, tmp / "source-model")
-        with quiet_colmap():
-            try:
-                pycolmap.undistort_images(tmp, source, images_dir)
-            except Exception as e:
-                raise DataError(f"undistorting {root} failed: {e}. Check that every image named in {sparse} "
-                                f"exists in {images_dir}") from None
-            if masks_dir is not None:
-                _undistort_masks(tmp, source, images_dir, masks_dir)
-        for junk in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh", "source-model"):
-            p = tmp / junk
-            shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
-        (tmp / "source.json").write_text(json.dumps({"stamp": stamp, "from": str(root)}) + "\n")
-        replace_dir(tmp, target)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    return target
+_LENS_FIX = ("check its parameters; if SfM fitted them, re-run it with `splatzoo sfm IMAGES --out DATA --camera-model "
+             "SIMPLE_PINHOLE`")
 
 
-def _check_lenses(model, used: list[int], distorted: list[int], registered, sparse: Path) -> None:
-    """Refuse cameras with NaN or infinite parameters (pycolmap takes a NaN distortion term for zero), and refuse (or
-    warn about) cameras whose photos undistort to too little to train on: camera_models.check_lens, the check the
-    transforms.json path makes."""
-    import sys
-
-    fix = ("check its parameters; if SfM fitted them, re-run it with `splatzoo sfm IMAGES --out DATA --camera-model "
-           "SIMPLE_PINHOLE`")
-    for cid in used:
-        names = sorted(im.name for im in registered if im.camera_id == cid)
-        who = (f"camera {cid} of {sparse} (used by {len(names)} image{'s' if len(names) > 1 else ''}, e.g. "
-               f"{names[0]})")
-        check_finite(model.cameras[cid], who, fix)
-        warning = check_lens(model.cameras[cid], who, fix) if cid in distorted else None
-        if warning:
-            print(f"splatzoo: warning: {warning}", file=sys.stderr, flush=True)
+def _camera_in_words(cid: int, registered, sparse: Path) -> str:
+    names = sorted(im.name for im in registered if im.camera_id == cid)
+    return f"camera {cid} of {sparse} (used by {len(names)} image{'s' if len(names) > 1 else ''}, e.g. {names[0]})"
 
 
-def _undistortable_model(sparse: Path, spare: Path) -> Path:
-    """`sparse`, or a copy in `spare` with cameras that pycolmap would copy unwarped swapped for equivalent ones
-    that it warps (see camera_models.for_undistortion)."""
-    model = read_model(sparse)
-    swaps = {cid: for_undistortion(cam) for cid, cam in model.cameras.items()}
-    swaps = {cid: cam for cid, cam in swaps.items() if cam is not None}
-    if not swaps:
-        return sparse
-    for cid, cam in swaps.items():
-        model.cameras[cid].model = cam.model
-        model.cameras[cid].params = list(cam.params)
-    spare.mkdir(parents=True)
-    model.write_binary(str(spare))
-    return spare
+def _check_distorted_sizes(model, distorted: list[int], cam_scale, registered, images_dir: Path) -> None:
+    """A distorted camera's photos are undistorted at the camera's own size: a downscaled copy of them is refused."""
+    for cid in distorted:
+        if cid in cam_scale:
+            cam = model.cameras[cid]
+            name = next(im.name for im in registered if im.camera_id == cid)
+            w, h = image_size(images_dir / name)
+            raise DataError(f"image {images_dir / name} is {w}x{h}, a downscaled copy of the {cam.width}x{cam.height} "
+                            f"photos of COLMAP camera {cid}, which has lens distortion: its photos are undistorted at "
+                            "the camera's own size. Use the full-size photos (load at a lower --resolution instead)")
 
 
-def _undistort_masks(out: Path, sparse: Path, images_dir: Path, masks_dir: Path) -> None:
-    pycolmap = import_pycolmap()
+def _undistort(root: Path, model, registered, images_dir: Path, distorted: list[int], masks_dir: Path | None,
+               masks: bool, sparse: Path) -> dict:
+    """image name -> the UndistortedPhoto of each image whose camera is distorted (with its mask when masks are asked
+    for; splatzoo.data.undistort)."""
+    from .undistort import DistortedPhoto, undistort_photos
 
-    model = read_model(sparse)
-    names = [im.name for im in model.images.values() if im.has_pose]
-    # pycolmap looks masks up under the image names: give it a folder of links with exactly those names.
-    with tempfile.TemporaryDirectory(dir=out) as links, tempfile.TemporaryDirectory(dir=out) as work:
-        for n in names:
-            m = find_mask(masks_dir, n)
-            if m is None:  # incomplete masks: leave them out; asking for masks then names the missing one
-                return
-            dst = Path(links) / n
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.symlink(m.resolve(), dst)
-        pycolmap.undistort_images(work, sparse, links)
-        shutil.move(str(Path(work) / "images"), str(out / "masks"))
+    chosen = sorted((im for im in registered if im.camera_id in distorted), key=lambda im: im.name)
+    who = {cid: _camera_in_words(cid, registered, sparse) for cid in distorted}
+    photos = []
+    for im in chosen:
+        path = images_dir / im.name
+        mask = _mask_of(im.name, path, masks_dir, root) if masks else None
+        photos.append(DistortedPhoto(path, model.cameras[im.camera_id], who[im.camera_id], mask))
+    return {im.name: copy for im, copy in zip(chosen, undistort_photos(root, UNDISTORTED_DIR, photos, _LENS_FIX))}
 
 
 def _locate_dataset(root: Path) -> tuple[Path, Path]:
@@ -450,28 +361,31 @@ def _mask_of(name: str, path: Path, masks_dir: Path | None, root: Path) -> Path 
     return mask_path
 
 
-def _build_views(root: Path, sparse: Path, model, registered, sizes, cam_scale, images_dir: Path,
+def _build_views(root: Path, sparse: Path, model, registered, sizes, cam_scale, undistorted: dict, images_dir: Path,
                  resolution_dir: Path | None, masks_dir: Path | None, *, resolution, max_width, masks: bool,
                  background) -> list[View]:
-    """One View per registered image, in name order, with its camera scaled to the asked resolution."""
+    """One View per registered image, in name order, with its camera scaled to the asked resolution; an image in
+    `undistorted` (name -> UndistortedPhoto) is its undistorted copy with the PINHOLE camera it was warped to."""
     views = []
     for im in sorted(registered, key=lambda im: im.name):
-        ccam = model.cameras[im.camera_id]
-        K = pinhole_K(ccam)
-        w, h = sizes[im.name]
-        if im.camera_id in cam_scale:
-            sx, sy = cam_scale[im.camera_id]
-            K[0] *= sx
-            K[1] *= sy
+        copy = undistorted.get(im.name)
+        if copy is not None:
+            K, (w, h) = copy.K.copy(), (copy.width, copy.height)
+        else:
+            K, (w, h) = pinhole_K(model.cameras[im.camera_id]), sizes[im.name]
+            if im.camera_id in cam_scale:
+                sx, sy = cam_scale[im.camera_id]
+                K[0] *= sx
+                K[1] *= sy
         w2c = _world_to_camera(im, sparse)
         cam = Camera(torch.from_numpy(w2c), torch.from_numpy(K), w, h, im.name)
         cam = scale_camera(cam, target_scale(w, h, resolution, max_width))
-        path = _image_path(im.name, images_dir, resolution_dir, cam)
-        mask_path, use_mask = None, False
-        if masks:
-            mask_path = _mask_of(im.name, path, masks_dir, root)
-            use_mask = True
-        views.append(View(camera=cam, name=im.name, path=path, mask_path=mask_path, use_mask=use_mask,
+        if copy is not None:
+            path, mask_path = copy.path, copy.mask
+        else:
+            path = _image_path(im.name, images_dir, resolution_dir, cam)
+            mask_path = _mask_of(im.name, path, masks_dir, root) if masks else None
+        views.append(View(camera=cam, name=im.name, path=path, mask_path=mask_path, use_mask=masks,
                           background=tuple(background)))
     return views
 
@@ -503,28 +417,16 @@ def load_colmap(root, *, resolution: int | None = None, max_width: int | None = 
     used = sorted({im.camera_id for im in registered})
     for cid in used:
         check_undistortable(model.cameras[cid], sparse)
+        # pycolmap takes a NaN distortion term for zero
+        check_finite(model.cameras[cid], _camera_in_words(cid, registered, sparse), _LENS_FIX)
     distorted = [cid for cid in used if not is_pinhole(model.cameras[cid])]
-    _check_lenses(model, used, distorted, registered, sparse)
-    if distorted:
-        # Masks are undistorted along with the images whether or not they are asked for now, so loading with
-        # and without masks shares one cached copy.
-        und = undistort(root, sparse, images_dir, masks_dir)
-        model = read_model(und / "sparse")
-        registered = [im for im in model.images.values() if im.has_pose]
-        images_dir = und / "images"
-        masks_dir = und / "masks" if (und / "masks").is_dir() else None
-        resolution_dir = None
-    else:
-        resolution_dir = root / f"images_{resolution}" if resolution in (2, 4, 8) else None
-
     sizes, cam_scale = _check_camera_sizes(model, registered, images_dir, sparse)
-    if masks and distorted and masks_dir is None and (root / "masks").is_dir():
-        lacking = next((im.name for im in registered if find_mask(root / "masks", im.name) is None), None)
-        raise DataError(f"masks requested but {root / 'masks'} has no mask for image {lacking}, so the masks could "
-                        f"not be undistorted with the images; add masks/{lacking} (or .png) for every image, "
-                        "or load without masks")
-    views = _build_views(root, sparse, model, registered, sizes, cam_scale, images_dir, resolution_dir, masks_dir,
-                         resolution=resolution, max_width=max_width, masks=masks, background=background)
+    _check_distorted_sizes(model, distorted, cam_scale, registered, images_dir)
+    undistorted = _undistort(root, model, registered, images_dir, distorted, masks_dir, masks, sparse)
+    # pre-shrunk copies (images_<n>/) are read only for a dataset without distortion
+    resolution_dir = root / f"images_{resolution}" if resolution in (2, 4, 8) and not distorted else None
+    views = _build_views(root, sparse, model, registered, sizes, cam_scale, undistorted, images_dir, resolution_dir,
+                         masks_dir, resolution=resolution, max_width=max_width, masks=masks, background=background)
     points, colors = _read_points(model, sparse)
     train, test = split_views(views, test_every, root)
     return Scene(name=root.resolve().name, root=root, train=train, test=test, points=points, colors=colors,
