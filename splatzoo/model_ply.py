@@ -15,7 +15,8 @@ One vertex per primitive, float32 properties, little endian, in the order of the
   scale_0, scale_1, scale_2    log sigma; scale_2 is the surfel's thickness, -inf (see below); not read back
   rot_0..3                     quaternion (w, x, y, z), unnormalised as trained
   gabor_color_base_0..2, gabor_color_diff_0..2 (or, for --color-param paper, gabor_color_a_0..2, gabor_color_b_0..2),
-  gabor_weight_*, gabor_freq_*, gabor_phase_*   Gabor-family colour and waves
+  gabor_weight_*, gabor_freq_*, gabor_phase_*   Gabor-family colour and waves (--color-param per-wave: no
+                               gabor_color_diff_*, and three gabor_weight_* a wave, its RGB amplitude, wave by wave)
   <param>_<i>                  any other per-primitive parameter of a plugin, flattened row-major
 Header comments name the splatzoo model and its config (`comment splatzoo model gabor`,
 `comment splatzoo config {"n_waves": 4}`), and `comment splatzoo antialias true` a model trained and rendered with
@@ -438,8 +439,9 @@ def _parameters(path, arr, columns: dict, model, model_name: str, config: dict) 
     variable = set(getattr(model, "variable_width", ()))
     for pname, empty in _exportable_parameters(model).items():
         trailing = tuple(empty.shape[1:])
-        if pname in variable and len(trailing) == 1:  # e.g. waves trimmed by pruning: the file tells the width
-            trailing = (_present_width(pname, names, prefixes),)
+        if pname in variable and trailing:  # e.g. waves trimmed by pruning: the file tells the width
+            per_slot = math.prod(trailing[1:])  # values a slot holds (per-wave colours: 3)
+            trailing = (_present_width(pname, names, prefixes) // per_slot,) + trailing[1:]
         needed = math.prod(trailing) if trailing else 1
         if needed > len(names):  # a crafted config (say a billion waves) must not make a billion names
             raise SplatzooError(f"{path}: parameter {pname!r} of model {model_name!r} with config {str(config)[:200]} "

@@ -1,5 +1,6 @@
 """beta-gabor: per-surfel wave counts (0 to 8) and per-surfel Beta falloffs on one surfel, held to the reference in
-float64, by finite differences, and at the extremes of both choices."""
+float64, by finite differences, and at the extremes of both choices; in both colour forms of its waves (residual: one
+shared colour difference a surfel; per-wave: an RGB amplitude a wave)."""
 import math
 
 import pytest
@@ -13,18 +14,25 @@ from splatzoo.types import MAX_FALLOFF
 FIELDS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
 
 
-def beta_gabor(n=48, seed=0):
+COLOR_PARAMS = ["residual", "per-wave"]
+
+
+def beta_gabor(n=48, seed=0, color_param="residual"):
     """A beta-gabor model whose surfels hold every wave count from 0 to 8 and falloffs from the Gaussian's
     neighbourhood to the tightest kernel."""
     _, cam = random_scene(1, 0, 40, 32, seed=seed, dtype=torch.float64)
     g = torch.Generator().manual_seed(seed)
     d = torch.randn(n, 3, generator=g, dtype=torch.float64)
-    model = splatzoo.create_model("beta-gabor", d / d.norm(dim=1, keepdim=True), torch.rand(n, 3, generator=g))
+    model = splatzoo.create_model("beta-gabor", d / d.norm(dim=1, keepdim=True), torch.rand(n, 3, generator=g),
+                                  color_param=color_param)
     model = model.double()
     with torch.no_grad():
         model.logit_opacity.fill_(0.5)
         model.log_scales.fill_(math.log(0.15))
-        model.color_diff.uniform_(-0.4, 0.4, generator=g)
+        if model.per_wave:
+            model.wave_weights.uniform_(-0.06, 0.06, generator=g)
+        else:
+            model.color_diff.uniform_(-0.4, 0.4, generator=g)
         model.wave_freqs.uniform_(0.05, 0.6, generator=g)
         model.falloff_logit.copy_(torch.linspace(-12, 12, n, dtype=torch.float64))  # s from ~6e-6 to MAX_FALLOFF
         remove = torch.arange(8)[None] >= (torch.arange(n) % 9)[:, None]           # 0..8 waves a surfel
@@ -33,8 +41,9 @@ def beta_gabor(n=48, seed=0):
     return model, cam
 
 
-def test_float64_native_equals_the_reference_with_gradients():
-    model, cam = beta_gabor()
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
+def test_float64_native_equals_the_reference_with_gradients(color_param):
+    model, cam = beta_gabor(color_param=color_param)
     with torch.no_grad():
         s = model.surfels(cam)
     assert s.falloff is not None and s.wave_counts is not None
@@ -51,7 +60,8 @@ def test_float64_native_equals_the_reference_with_gradients():
                                    rtol=0, atol=1e-9, msg=k)
     assert outs["cpu"].alpha.max() > 0.3, "the scene draws little"
     assert set(grads["cpu"]) == set(grads["reference"]) >= {"falloff_logit", "wave_weights", "wave_freqs",
-                                                             "wave_phases", "color_diff"}
+                                                             "wave_phases", "color_base"}
+    assert ("color_diff" in grads["cpu"]) == (color_param == "residual")
     for k, g in grads["reference"].items():
         torch.testing.assert_close(grads["cpu"][k], g, rtol=1e-6, atol=1e-9, msg=k)
     # a surfel's unused wave slots take no gradient
@@ -76,11 +86,37 @@ def test_gradcheck_of_mixed_wave_counts_and_falloffs():
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)
 
 
+def test_gradcheck_of_per_wave_colours_through_the_model():
+    """Finite differences of the native render w.r.t. the model's own per-wave parameters: each wave's RGB amplitude,
+    frequency and phase, and the base colour, on surfels with 0 to 8 waves."""
+    model, cam = beta_gabor(n=9, seed=4, color_param="per-wave")
+    names = ("wave_weights", "wave_freqs", "wave_phases", "color_base")
+    assert model.wave_weights.shape[-1] == 3
+
+    class Rendered(torch.nn.Module):  # the model's render as a module call, for functional_call
+        def __init__(self):
+            super().__init__()
+            self.model = model
+
+        def forward(self):
+            out = self.model.render(cam, backend="cpu")
+            return out.rgb, out.alpha
+
+    module = Rendered()
+
+    def f(*xs):
+        return torch.func.functional_call(module, {f"model.{k}": x for k, x in zip(names, xs)}, ())
+
+    inputs = [getattr(model, k).detach().clone().requires_grad_(True) for k in names]
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)
+
+
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
 @pytest.mark.parametrize("extreme", ["no waves", "all waves", "gaussian", "tightest"])
-def test_extremes_render_finite_and_as_their_limits(extreme):
+def test_extremes_render_finite_and_as_their_limits(extreme, color_param):
     """No waves is the beta surfel; the falloff's limit s -> 0 is the gabor surfel; the tightest kernel draws
     nothing beyond its support."""
-    model, cam = beta_gabor(n=27, seed=2)
+    model, cam = beta_gabor(n=27, seed=2, color_param=color_param)
     with torch.no_grad():
         if extreme == "no waves":
             model.prune_waves(math.inf)

@@ -27,7 +27,7 @@ def patterned(name: str, seed: int = 0, **options):
         if hasattr(m, "wave_freqs"):
             shape = m.wave_freqs.shape
             m.wave_freqs.copy_(4 * torch.rand(shape, generator=g) - 2)  # up to 2 cycles per sigma, either sign
-            m.wave_weights.copy_(0.5 + torch.rand(shape, generator=g))
+            m.wave_weights.copy_(0.5 + torch.rand(m.wave_weights.shape, generator=g))  # per-wave: an RGB amplitude
             if m.learn_phase:
                 m.wave_phases.copy_(2 * math.pi * torch.rand(shape, generator=g) - math.pi)
             for colour in ("color_base", "color_a"):
@@ -77,7 +77,8 @@ def colour(m, idx, u, v):
 
 EXACT = [("2dgs", {}), ("2dgs", {"sh_degree": 2}), ("gabor", {}), ("gabor", {"color_param": "paper"}),
          ("gabor", {"sh_degree": 2}), ("gabor", {"n_waves": 6}), ("baseline-a", {}), ("baseline-b", {}),
-         ("gabor-adaptive", {}), ("gabor-adaptive", {"color_param": "paper"})]
+         ("gabor-adaptive", {}), ("gabor-adaptive", {"color_param": "paper"}), ("gabor", {"color_param": "per-wave"}),
+         ("beta-gabor", {"color_param": "per-wave"})]
 
 
 @pytest.mark.parametrize("name,options", EXACT, ids=[n + "".join(f"-{k}={v}" for k, v in o.items()) for n, o in EXACT])
@@ -113,7 +114,8 @@ def test_without_the_split_hook_a_child_shows_the_pattern_too_coarse():
     assert wrong > 0.1
 
 
-@pytest.mark.parametrize("options", [{}, {"color_param": "paper", "prune_waves": 0.01}], ids=["residual", "paper"])
+@pytest.mark.parametrize("options", [{}, {"color_param": "paper", "prune_waves": 0.01}, {"color_param": "per-wave"}],
+                         ids=["residual", "paper", "per-wave"])
 def test_baseline_c_children_keep_the_mean_and_fit_the_pattern_best_without_a_phase(options):
     """Baseline C has no phase to shift: each child's wave is the zero-phase wave closest to its parent's over the
     child's Gaussian (weight w cos(k.offset)), with the child's mean colour exactly the parent pattern's there."""

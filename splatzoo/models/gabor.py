@@ -8,8 +8,12 @@ t_i = 2 pi f_i (cos theta_i, sin theta_i).(u,v) + phi_i (f in cycles per sigma),
 - "paper": c(u,v) = sum_i w_i [cA (1 + cos t_i)/2 + cB (1 - cos t_i)/2]
                   = (sum_i w_i)(cA + cB)/2 + sum_i w_i (cA - cB)/2 cos t_i,
   the paper's, where the weights scale the base colour too.
-Either is the rasterizer's wave bank with k_i = 2 pi f_i (cos theta_i, sin theta_i) and amplitudes a_i = w_i d
-(d = (cA - cB)/2 for "paper").
+- "per-wave": c(u,v) = c0 + sum_i w_i cos t_i with w_i an RGB amplitude of its own per wave: "residual" without the
+  shared difference d, so crossing stripes of different colours (a tartan) fit on one surfel. One wave stores 5 values
+  (3 amplitudes, frequency, phase) against residual's 3 plus the 3 of d a surfel with waves stores, so a surfel with
+  one wave is smaller too.
+Each is the rasterizer's wave bank with k_i = 2 pi f_i (cos theta_i, sin theta_i) and amplitudes a_i = w_i d
+(d = (cA - cB)/2 for "paper"; "per-wave": a_i = w_i).
 
 Two options beyond the paper:
 - prune_waves, prune_relative or prune_psnr > 0 (adaptive waves): during training, waves whose visible contribution
@@ -50,6 +54,7 @@ BASE_COLOR_LR = 2.5e-3 * SH_C0
 # within 0.002 over white, three seeds) and costs fine texture least (BENCHMARKS.md, "Sparse waves by default")
 WAVE_L1 = 3e-6
 WAVE_L1_COUNT = 2000  # ... chosen with this many surfels (wave_l1_per_count scales it by this / the surfel count)
+COLOR_PARAMS = ("residual", "paper", "per-wave")
 
 
 def sparse_l1(weights: torch.Tensor, strength: float, count: int, per_count: bool = True) -> torch.Tensor:
@@ -74,7 +79,9 @@ class GaborConfig:
     color_param: str = field(default="residual", metadata={
         "help": "residual: colour = base + sum_i w_i d cos(t_i), the base a 2DGS surfel's colour at 2DGS's rate and "
                 "the waves a residual around it (never worse than 2DGS on plain colour); paper: the paper's "
-                "sum_i w_i [cA (1 + cos t_i)/2 + cB (1 - cos t_i)/2], started as --init says; see BENCHMARKS.md"})
+                "sum_i w_i [cA (1 + cos t_i)/2 + cB (1 - cos t_i)/2], started as --init says; per-wave: residual with "
+                "an RGB amplitude for each wave instead of one d a surfel (stripes of different colours on one surfel; "
+                "a one-wave surfel stores 5 values for its wave against residual's 6); see BENCHMARKS.md"})
     sh_degree: int = field(default=0, metadata={"help": "spherical-harmonics degree (0..3) of a view-dependent term "
                                                         "added to the base colour; 0: view-independent (the paper)"})
     prune_waves: float = field(default=0.0, metadata={
@@ -129,16 +136,16 @@ class GaborConfig:
         if sum(float(v) > 0 for v in (self.prune_waves, self.prune_relative, self.prune_psnr)) > 1:
             raise ShapeError("give one pruning criterion: prune_waves (fixed, colour units), prune_relative (a "
                              "fraction of the training error) or prune_psnr (a measured PSNR cost), not two")
-        if self.color_param not in ("residual", "paper"):
-            raise ShapeError(f"color_param must be residual or paper, got {self.color_param!r}")
+        if self.color_param not in COLOR_PARAMS:
+            raise ShapeError(f"color_param must be {', '.join(COLOR_PARAMS)}, got {self.color_param!r}")
         if self.init not in ("surfel", "paper"):
             raise ShapeError(f"init must be surfel or paper, got {self.init!r}")
         if self.color_param == "paper" and float(self.wave_l1) not in (0.0, WAVE_L1):
             raise ShapeError("wave_l1 applies to color_param=residual only: in the paper's form the wave weights carry "
                              "the base colour too, so shrinking them would darken the surfel")
-        if self.color_param == "residual" and self.init != "paper":
+        if self.color_param != "paper" and self.init != "paper":
             raise ShapeError(f"init={self.init!r} starts the paper's colour parametrisation; add color_param=paper "
-                             "(--color-param paper), or drop it: the residual one has its own start")
+                             f"(--color-param paper), or drop it: {self.color_param} has its own start")
         if not 0 <= float(self.prune_from) <= 1:
             raise ShapeError(f"prune_from is a fraction of the run in [0, 1], got {self.prune_from}")
 
@@ -175,13 +182,15 @@ class GaborModel(SurfelModel):
     def __init__(self, config: GaborConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
         n, k = num_primitives, config.n_waves
-        if self.residual:
+        if self.per_wave:
+            self.color_base = nn.Parameter(torch.zeros(n, 3))
+        elif self.residual:
             self.color_base = nn.Parameter(torch.zeros(n, 3))
             self.color_diff = nn.Parameter(torch.zeros(n, 3))
         else:
             self.color_a = nn.Parameter(torch.zeros(n, 3))
             self.color_b = nn.Parameter(torch.zeros(n, 3))
-        self.wave_weights = nn.Parameter(torch.zeros(n, k))
+        self.wave_weights = nn.Parameter(torch.zeros((n, k, 3) if self.per_wave else (n, k)))
         self.wave_freqs = nn.Parameter(torch.zeros(n, k))
         if self.learn_phase:
             self.wave_phases = nn.Parameter(torch.zeros(n, k))
@@ -204,7 +213,13 @@ class GaborModel(SurfelModel):
 
     @property
     def residual(self) -> bool:
-        return self.config.color_param == "residual"
+        """The base colour c0 is a parameter of its own and the waves a residual around it ("residual", "per-wave")."""
+        return self.config.color_param in ("residual", "per-wave")
+
+    @property
+    def per_wave(self) -> bool:
+        """Each wave's weight is an RGB amplitude of its own ([N,width,3]) instead of a scale on one shared d."""
+        return self.config.color_param == "per-wave"
 
     @property
     def variable_width(self) -> tuple[str, ...]:
@@ -223,8 +238,11 @@ class GaborModel(SurfelModel):
         colour (sum w)(cA + cB)/2 is the point colour) and cA, cB = colour +- d with d ~ INIT_OFFSET U(-1,1) per
         channel (each wave's amplitude w (cA - cB)/2 = d/N). All: f = U(0,1) cycles per sigma, phi = U(0,1)."""
         self.init_geometry(points, generator)
-        n, k = self.wave_weights.shape
-        if self.residual:
+        n, k = self.wave_weights.shape[:2]
+        if self.per_wave:  # residual's start: each wave's amplitude w d with d half the point colour
+            self.color_base.copy_(colors)
+            self.wave_weights.copy_(0.1 * torch.rand(n, k, generator=generator)[..., None] * (colors / 2)[:, None])
+        elif self.residual:
             self.color_base.copy_(colors)
             self.color_diff.copy_(colors / 2)
             self.wave_weights.copy_(0.1 * torch.rand(n, k, generator=generator))
@@ -242,18 +260,24 @@ class GaborModel(SurfelModel):
             self.wave_phases.copy_(torch.rand(n, k, generator=generator))
 
     def phases(self) -> torch.Tensor:
-        return self.wave_phases if self.learn_phase else self.wave_weights.new_zeros(self.wave_weights.shape)
+        return self.wave_phases if self.learn_phase else self.wave_weights.new_zeros(self.wave_weights.shape[:2])
 
     def active_slots(self) -> torch.Tensor:
         """bool [N, width]: which stored wave slots are in use."""
         w = self.wave_weights
         if not self.adaptive:
-            return torch.ones(w.shape, dtype=torch.bool, device=w.device)
+            return torch.ones(w.shape[:2], dtype=torch.bool, device=w.device)
         return torch.arange(w.shape[1], device=w.device)[None] < self.wave_counts[:, None]
 
     def half_difference(self) -> torch.Tensor:
         """[N,3] d: the colour every wave of a surfel scales by its weight (amplitude a_i = w_i d)."""
         return self.color_diff if self.residual else (self.color_a - self.color_b) / 2
+
+    def amplitudes(self) -> torch.Tensor:
+        """[N,width,3] each wave's RGB amplitude a_i: w_i d, or w_i itself ("per-wave")."""
+        if self.per_wave:
+            return self.wave_weights
+        return self.wave_weights[..., None] * self.half_difference()[:, None, :]
 
     def surfels(self, camera: Camera) -> Surfels:
         g = self.geometry()
@@ -277,7 +301,7 @@ class GaborModel(SurfelModel):
             # bands >= 1 only: the DC term is the Gabor base colour itself
             coeffs = torch.cat([self.sh_rest.new_zeros(self.sh_rest.shape[0], 1, 3), self.sh_rest], 1)
             base = base + eval_sh(self.config.sh_degree, coeffs, view_directions(self.means, camera))
-        amplitudes = w[..., None] * self.half_difference()[:, None, :]
+        amplitudes = self.amplitudes()
         vectors = (2 * math.pi) * self.wave_freqs.clamp(-FREQ_LIMIT, FREQ_LIMIT)[..., None] * directions
         return Surfels(g["means"], g["quats"], g["scales"], g["opacities"], base, vectors, self.phases(), amplitudes,
                        wave_counts=counts)
@@ -306,7 +330,9 @@ class GaborModel(SurfelModel):
             rows["wave_phases"] = torch.remainder(rows["wave_phases"] + shift + math.pi, 2 * math.pi) - math.pi
             return rows
         w, c = rows["wave_weights"], torch.cos(shift)
-        if self.residual:
+        if self.per_wave:
+            rows["wave_weights"] = w * c[..., None]
+        elif self.residual:
             rows["wave_weights"] = w * c
         elif self.adaptive:
             rows["wave_weights"] = w * c
@@ -314,7 +340,9 @@ class GaborModel(SurfelModel):
         return rows
 
     def optim_groups(self, scene_extent: float) -> list[dict]:
-        if self.residual:
+        if self.per_wave:
+            color_groups = [{"name": "color_base", "params": [self.color_base], "lr": BASE_COLOR_LR}]
+        elif self.residual:
             color_groups = [{"name": "color_base", "params": [self.color_base], "lr": BASE_COLOR_LR},
                             {"name": "color_diff", "params": [self.color_diff], "lr": 2.5e-3}]
         else:
@@ -425,7 +453,7 @@ class GaborModel(SurfelModel):
         a cos(phi) e^{-|k|^2/2} and second moment a^2 (1 + cos(2 phi) e^{-2|k|^2}) / 2. contribution = opacity x the
         standard deviation (largest channel): how far the wave moves the surfel's colour away from its mean."""
         phi, k2 = self.phases(), (2 * math.pi * self.wave_freqs) ** 2
-        amp = self.wave_weights[..., None] * self.half_difference()[:, None, :]  # [N,width,3]
+        amp = self.amplitudes()  # [N,width,3]
         mean = amp * self._mean_cos()[..., None]
         second = amp ** 2 * ((1 + torch.cos(2 * phi) * torch.exp(-2 * k2)) / 2)[..., None]
         std = (second - mean ** 2).clamp_min(0).sqrt().amax(-1)
@@ -442,7 +470,7 @@ class GaborModel(SurfelModel):
             raise ShapeError("prune_waves needs a model created with prune_waves, prune_relative or prune_psnr > 0 "
                              "(it tracks per-surfel counts)")
         w = self.wave_weights.detach()
-        n, width = w.shape
+        n, width = w.shape[:2]
         on = self.active_slots()
         _, contribution = self.wave_statistics()
         keep = on & (contribution >= threshold) if remove is None else on & ~remove
@@ -451,8 +479,10 @@ class GaborModel(SurfelModel):
         if n_removed == 0:
             return {"removed": 0, "active": int(on.sum())}
         m = self._mean_cos()
-        gone = w * removed
-        if self.residual:  # a removed wave w d cos t has mean w d m, m = cos(phi) e^{-|k|^2/2}: the base keeps it
+        gone = w * (removed[..., None] if self.per_wave else removed)
+        if self.per_wave:  # a removed wave a cos t has mean a m: the base keeps it
+            self.color_base.add_((gone * m[..., None]).sum(1))
+        elif self.residual:  # a removed wave w d cos t has mean w d m, m = cos(phi) e^{-|k|^2/2}: the base keeps it
             self.color_base.add_((gone * m).sum(1, keepdim=True) * self.color_diff)
         else:
             # A removed wave's colour w[cA (1 + cos t)/2 + cB (1 - cos t)/2] has mean w[cA (1 + m)/2 + cB (1 - m)/2]:
@@ -463,14 +493,17 @@ class GaborModel(SurfelModel):
         new_width = int(counts.max()) if n else 0
         live = torch.arange(new_width, device=w.device)[None] < counts[:, None]
 
-        def pack(t):  # [N,width] -> [N,new_width], unused slots zeroed (values and Adam moments)
-            t = t.gather(1, order)[:, :new_width]
-            return torch.where(live, t, torch.zeros_like(t))
+        def pack(t):  # [N,width(,C)] -> [N,new_width(,C)], unused slots zeroed (values and Adam moments)
+            slots = order.view(order.shape + (1,) * (t.dim() - 2)).expand(order.shape + t.shape[2:])
+            t = t.gather(1, slots)[:, :new_width]
+            return torch.where(live.view(live.shape + (1,) * (t.dim() - 2)), t, torch.zeros_like(t))
 
         # surfels losing their last wave (every weight is now folded): "residual" drops d (the base holds the
         # colour already); "paper" keeps the colour fa cA + fb cB in color_a alone
         emptied = (counts == 0) & (self.wave_counts > 0)
-        if bool(emptied.any()) and self.residual:
+        if self.per_wave:
+            pass  # a per-wave surfel keeps nothing for its waves outside them
+        elif bool(emptied.any()) and self.residual:
             self.set_rows("color_diff", emptied, 0.0, optimizer)
         elif bool(emptied.any()):
             fa, fb = self.folded_weights[emptied].unbind(1)
@@ -489,7 +522,8 @@ class GaborModel(SurfelModel):
         """(bytes of one stored wave, bytes a surfel stores only while it has a wave) at `precision`."""
         from ..packing import value_bytes
 
-        wave = sum(value_bytes(n, getattr(self, n), precision) for n in self.wave_parameter_names)
+        wave = sum(getattr(self, n)[:1, :1].numel() * value_bytes(n, getattr(self, n), precision)
+                   for n in self.wave_parameter_names)
         waved = sum(getattr(self, n)[:1].numel() * value_bytes(n, getattr(self, n), precision)
                     for n in self._waved_only)
         return float(wave), float(waved)
@@ -550,6 +584,8 @@ class GaborModel(SurfelModel):
     @property
     def _waved_only(self) -> tuple[str, ...]:
         """What a wave-less surfel does not store (zero, and frozen: its colour is the base colour alone)."""
+        if self.per_wave:
+            return ()
         return ("color_diff",) if self.residual else ("color_b", "folded_weights")
 
     def size_bytes(self) -> int:
@@ -609,7 +645,7 @@ class GaborModel(SurfelModel):
         index = torch.where(live, index, torch.zeros_like(index))
         dense = {}
         for name in self.wave_parameter_names:
-            dense[name] = torch.zeros(n, width, dtype=state[name].dtype)
+            dense[name] = torch.zeros((n, width) + tuple(state[name].shape[1:]), dtype=state[name].dtype)
             dense[name][live] = state[name]
         for name in self._waved_only:
             dense[name] = torch.zeros((n,) + tuple(state[name].shape[1:]), dtype=state[name].dtype)
