@@ -29,10 +29,11 @@ def trained_looking(name, n=40, seed=0, **options):
         for p in model.parameters():
             p.add_(0.3 * torch.randn(p.shape, generator=g))
     if getattr(model, "adaptive", False):  # some surfels wave-less, the rest with a few waves: the packed layout
-        drop = torch.rand(model.wave_weights.shape, generator=g) < 0.6
+        slots = model.active_slots().shape  # [N, width] (per-wave weights have a colour axis besides)
+        drop = torch.rand(slots, generator=g) < 0.6
         drop[: n // 4] = True
         model.prune_waves(0.0, remove=drop)
-        assert 0 < int(model.wave_counts.sum()) < model.wave_weights.numel() and int((model.wave_counts == 0).sum())
+        assert 0 < int(model.wave_counts.sum()) < slots.numel() and int((model.wave_counts == 0).sum())
     model.antialias, model.background = True, (1.0, 1.0, 1.0)
     return model
 

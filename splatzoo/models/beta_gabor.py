@@ -1,14 +1,16 @@
-"""beta-gabor: the waves of gabor-adaptive on surfels with beta's learned falloff.
+"""beta-gabor: the waves of gabor-adaptive, each with a colour of its own, on surfels with beta's learned falloff.
 
 Both ways of spending bytes that the zoo measured to pay per byte, on one surfel: a Beta kernel (one number a surfel,
 sharper edges and fewer tiles touched) and waves only where the training views show they are worth their bytes
 (gabor-adaptive: 8 orientations to start, pruned late by measured cost; a surfel without waves is stored as a plain
-surfel). Under a byte budget (TrainConfig.max_bytes, `compare --budgets`) it starts with as many surfels as fit plain
+surfel). Each wave carries its own RGB amplitude (color_param "per-wave"): stripes of several colours fit on one
+surfel, and a surfel with one wave stores 5 values for it where the shared colour difference costs 6 (BENCHMARKS.md,
+"Waves with a colour each"). Under a byte budget (TrainConfig.max_bytes, `compare --budgets`) it starts with as many surfels as fit plain
 and sheds, by measured cost, waves or its weakest surfels until it fits (training/budget.py).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .beta import BetaFalloff
 from .gabor import AdaptiveGaborConfig, GaborModel
@@ -16,7 +18,9 @@ from .gabor import AdaptiveGaborConfig, GaborModel
 
 @dataclass
 class BetaGaborConfig(AdaptiveGaborConfig):
-    pass
+    color_param: str = field(default="per-wave", metadata={
+        "help": "per-wave: colour = base + sum_i a_i cos(t_i), an RGB amplitude a_i for each wave; residual: the waves "
+                "share one colour difference d a surfel (a_i = w_i d); paper: the paper's form (see gabor)"})
 
 
 class BetaGaborModel(BetaFalloff, GaborModel):

@@ -472,6 +472,9 @@ class GaborModel(SurfelModel):
         w = self.wave_weights.detach()
         n, width = w.shape[:2]
         on = self.active_slots()
+        if remove is not None and remove.shape != on.shape:
+            raise ShapeError(f"prune_waves: remove must mark wave slots [N, width] = {list(on.shape)}, got "
+                             f"{list(remove.shape)}")
         _, contribution = self.wave_statistics()
         keep = on & (contribution >= threshold) if remove is None else on & ~remove
         removed = on & ~keep
