@@ -9,8 +9,9 @@ suffix):
   splat, ksplat              read through splat-transform
   ply                        the PLY layout of splatzoo.model_ply (`save_ply`, `load_ply`), told by its first bytes
   szp, pt                    splatzoo's packed and torch model files (splatzoo.zoo `save_model`, `load_model`)
-A folder format reads a folder rather than a file: run folders register theirs from splatzoo.runs, so this layer
-never imports the layer above it. A file is told by the first format, in table order, that claims it; torch files
+A folder format reads a folder rather than a file: run folders register theirs from splatzoo.runs, which this layer
+imports by name (FOLDER_FORMAT_MODULES) the first time it is asked to open a folder, as it would a plugin, so it
+never imports the layer above it when it is loaded. A file is told by the first format, in table order, that claims it; torch files
 take whatever no other format claims.
 
 Reading refuses a model that draws nothing, whatever its file (splatzoo.model_checks). A file splat-transform cannot
@@ -19,6 +20,7 @@ temporary PLY in between.
 """
 from __future__ import annotations
 
+import importlib
 import tempfile
 import warnings
 from dataclasses import dataclass
@@ -59,6 +61,7 @@ class ModelFormat:
 
 # name -> format, in the order files are told in (a dict keeps it)
 FORMATS: dict[str, ModelFormat] = {}
+FOLDER_FORMAT_MODULES = ("splatzoo.runs",)  # modules whose import registers folder formats (run folders)
 
 
 def register_format(fmt: ModelFormat) -> ModelFormat:
@@ -111,13 +114,15 @@ def format_of(path) -> ModelFormat:
     if not exists:
         raise SplatzooError(f"{path} does not exist; pass a run directory written by `splatzoo train`, a model .pt "
                             "or a model .ply")
+    for module in FOLDER_FORMAT_MODULES:  # run folders: their format registers itself when its module loads
+        importlib.import_module(module)
     folders = [fmt for fmt in FORMATS.values() if fmt.folder]
     # a folder format with a detect() claims the folders it recognises; the one without (run folders) takes the rest
     folder = next((fmt for fmt in folders if fmt.detect is not None and fmt.detect(path)), None) or next(
         (fmt for fmt in folders if fmt.detect is None), None)
     if folder is None:
-        raise SplatzooError(f"{path} is a folder, and no folder format is registered: run folders are read once "
-                            "splatzoo.runs is imported")
+        raise SplatzooError(f"{path} is a folder, and no folder format is registered (run folders are read by "
+                            "splatzoo.runs)")
     return folder
 
 

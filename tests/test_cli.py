@@ -116,6 +116,18 @@ def test_an_unavailable_backend_is_named_before_anything_runs(command, tiny_run,
     assert last.startswith("error:") and "CUDA" in last and "cuda rasterizer" in last
 
 
+def test_a_run_folder_opens_in_a_fresh_interpreter(tiny_run):
+    """splatzoo.load_model reads a run folder without its caller importing splatzoo.runs first (the model-file layer
+    loads the run-folder format by name)."""
+    from splatzoo.runs import Run
+
+    _, run = tiny_run
+    code = f"import splatzoo; print(splatzoo.load_model({str(run)!r}).num_primitives)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert int(out.stdout.split()[-1]) == Run(run).load()[0].num_primitives > 0
+
+
 def test_sfm_options_reach_the_mapper(tmp_path):
     """--focal is passed on (a bad one is refused before anything is written)."""
     images = tmp_path / "photos"
