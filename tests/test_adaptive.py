@@ -140,6 +140,31 @@ def test_pruning_keeps_each_surfels_mean_colour(color_param):
 
 
 @pytest.mark.parametrize("color_param", COLOR_PARAMS)
+def test_free_directions_prune_store_and_load_as_they_render(tmp_path, color_param):
+    """Waves that learn their direction (wave_freqs [N,width,2]): pruning keeps each surfel's mean colour, and the
+    pruned model renders the same after .pt, 8-bit .szp (as its stored copy) and PLY round trips."""
+    from splatzoo.export import load_ply, save_ply
+    from splatzoo.zoo import stored_copy
+
+    m = adaptive_model(threshold=0.05, color_param=color_param, free_directions=True)
+    assert m.wave_freqs.shape[1:] == (4, 2)
+    with torch.no_grad():
+        m.wave_freqs.mul_(0.3)
+        m.wave_freqs[:, :, 1].add_(0.2)  # directions off the fan
+        m.wave_weights.mul_(10)
+        m.wave_weights[:10] *= 0.001  # these surfels lose every wave
+    before = mean_colors(m.surfels(CAM))
+    assert m.prune_waves(0.05)["removed"] > 40 and m.wave_counts[:10].eq(0).all() and m.wave_counts.gt(0).any()
+    torch.testing.assert_close(mean_colors(m.surfels(CAM)), before, atol=1e-6, rtol=0)
+    splatzoo.save_model(m, tmp_path / "m.pt")
+    assert torch.equal(render(splatzoo.load_model(tmp_path / "m.pt")).rgb, render(m).rgb)
+    assert torch.equal(render(load_ply(save_ply(m, tmp_path / "m.ply"))).rgb, render(m).rgb)
+    m.precision = "8bit"
+    splatzoo.save_model(m, tmp_path / "m.szp")
+    assert torch.equal(render(splatzoo.load_model(tmp_path / "m.szp")).rgb, render(stored_copy(m, "8bit")).rgb)
+
+
+@pytest.mark.parametrize("color_param", COLOR_PARAMS)
 def test_waveless_surfels_store_and_train_as_2dgs_surfels(tmp_path, color_param):
     base, diff, extra = COLOR_NAMES[color_param]
     m = adaptive_model(color_param=color_param)

@@ -14,7 +14,7 @@ from splatzoo.types import MAX_FALLOFF
 FIELDS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
 
 
-COLOR_PARAMS = ["residual", "per-wave"]
+COLOR_PARAMS = ["residual", "per-wave", "per-wave, free directions"]
 
 
 def beta_gabor(n=48, seed=0, color_param="residual"):
@@ -23,8 +23,9 @@ def beta_gabor(n=48, seed=0, color_param="residual"):
     _, cam = random_scene(1, 0, 40, 32, seed=seed, dtype=torch.float64)
     g = torch.Generator().manual_seed(seed)
     d = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    free = color_param.endswith(", free directions")
     model = splatzoo.create_model("beta-gabor", d / d.norm(dim=1, keepdim=True), torch.rand(n, 3, generator=g),
-                                  color_param=color_param)
+                                  color_param=color_param.split(",")[0], free_directions=free)
     model = model.double()
     with torch.no_grad():
         model.logit_opacity.fill_(0.5)
@@ -34,6 +35,8 @@ def beta_gabor(n=48, seed=0, color_param="residual"):
         else:
             model.color_diff.uniform_(-0.4, 0.4, generator=g)
         model.wave_freqs.uniform_(0.05, 0.6, generator=g)
+        if free:  # directions off the fan
+            model.wave_freqs[..., 1].uniform_(-0.4, 0.4, generator=g)
         model.falloff_logit.copy_(torch.linspace(-12, 12, n, dtype=torch.float64))  # s from ~6e-6 to MAX_FALLOFF
         remove = torch.arange(8)[None] >= (torch.arange(n) % 9)[:, None]           # 0..8 waves a surfel
         model.prune_waves(0.0, remove=remove)
@@ -86,12 +89,13 @@ def test_gradcheck_of_mixed_wave_counts_and_falloffs():
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, nondet_tol=1e-12)
 
 
-def test_gradcheck_of_per_wave_colours_through_the_model():
+@pytest.mark.parametrize("color_param", COLOR_PARAMS[1:])
+def test_gradcheck_of_per_wave_colours_through_the_model(color_param):
     """Finite differences of the native render w.r.t. the model's own per-wave parameters: each wave's RGB amplitude,
-    frequency and phase, and the base colour, on surfels with 0 to 8 waves."""
-    model, cam = beta_gabor(n=9, seed=4, color_param="per-wave")
+    frequency (free directions: its 2D vector) and phase, and the base colour, on surfels with 0 to 8 waves."""
+    model, cam = beta_gabor(n=9, seed=4, color_param=color_param)
     names = ("wave_weights", "wave_freqs", "wave_phases", "color_base")
-    assert model.wave_weights.shape[-1] == 3
+    assert model.wave_weights.shape[-1] == 3 and model.wave_freqs.dim() == (3 if model.free_directions else 2)
 
     class Rendered(torch.nn.Module):  # the model's render as a module call, for functional_call
         def __init__(self):

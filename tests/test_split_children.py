@@ -25,8 +25,8 @@ def patterned(name: str, seed: int = 0, **options):
         m.quats.copy_(torch.randn(N, 4, generator=g))
         m.log_scales.copy_(torch.randn(N, 2, generator=g) * 0.5 - 1)
         if hasattr(m, "wave_freqs"):
-            shape = m.wave_freqs.shape
-            m.wave_freqs.copy_(4 * torch.rand(shape, generator=g) - 2)  # up to 2 cycles per sigma, either sign
+            shape = m.wave_freqs.shape[:2]  # [N, K] slots (free directions store a 2D vector a slot)
+            m.wave_freqs.copy_(4 * torch.rand(m.wave_freqs.shape, generator=g) - 2)  # up to 2 cycles per sigma
             m.wave_weights.copy_(0.5 + torch.rand(m.wave_weights.shape, generator=g))  # per-wave: an RGB amplitude
             if m.learn_phase:
                 m.wave_phases.copy_(2 * math.pi * torch.rand(shape, generator=g) - math.pi)
@@ -78,7 +78,8 @@ def colour(m, idx, u, v):
 EXACT = [("2dgs", {}), ("2dgs", {"sh_degree": 2}), ("gabor", {}), ("gabor", {"color_param": "paper"}),
          ("gabor", {"sh_degree": 2}), ("gabor", {"n_waves": 6}), ("baseline-a", {}), ("baseline-b", {}),
          ("gabor-adaptive", {}), ("gabor-adaptive", {"color_param": "paper"}), ("gabor", {"color_param": "per-wave"}),
-         ("beta-gabor", {"color_param": "per-wave"})]
+         ("beta-gabor", {"color_param": "per-wave"}), ("gabor", {"free_directions": True}),
+         ("beta-gabor", {"free_directions": True})]
 
 
 @pytest.mark.parametrize("name,options", EXACT, ids=[n + "".join(f"-{k}={v}" for k, v in o.items()) for n, o in EXACT])

@@ -31,6 +31,9 @@ Two options beyond the paper:
   "paper": color_b and the folded weights) is zero and receives no gradient. Checkpoints store active waves only
   (packed, with a per-surfel orientation bit mask) and, for wave-less surfels, only the base colour.
 - sh_degree > 0: a view-dependent spherical-harmonics term (degree >= 1 bands, no DC) added to the base colour.
+- free_directions: each wave learns its direction too: wave_freqs holds a 2D vector in cycles per sigma (the wave
+  vector k / 2 pi), started along its slot's orientation, instead of a frequency along that fixed orientation. One
+  more value a wave; a pattern at any angle is fitted without the fan's 22.5 degree steps (8 orientations).
 """
 from __future__ import annotations
 
@@ -108,6 +111,9 @@ class GaborConfig:
         "help": "scale --wave-l1 by 2000 / the surfel count (2000: the count it was chosen at), so that the pull "
                 "against the images' gradient, which shrinks with the pixels each surfel covers, does not grow as "
                 "densification multiplies the surfels; off: the same strength at any count"})
+    free_directions: bool = field(default=False, metadata={
+        "help": "each wave learns its direction: a 2D wave vector (started along its orientation of the fan) instead "
+                "of a frequency along a fixed orientation; one more stored value a wave"})
     prune_from: float = field(default=0.5, metadata={
         "help": "adaptive waves (any --prune-* option): fraction of the iterations before the first pruning "
                 "(waves need time to grow; with densification on, pruning also waits until the last opacity reset "
@@ -191,7 +197,7 @@ class GaborModel(SurfelModel):
             self.color_a = nn.Parameter(torch.zeros(n, 3))
             self.color_b = nn.Parameter(torch.zeros(n, 3))
         self.wave_weights = nn.Parameter(torch.zeros((n, k, 3) if self.per_wave else (n, k)))
-        self.wave_freqs = nn.Parameter(torch.zeros(n, k))
+        self.wave_freqs = nn.Parameter(torch.zeros((n, k, 2) if config.free_directions else (n, k)))
         if self.learn_phase:
             self.wave_phases = nn.Parameter(torch.zeros(n, k))
         if config.sh_degree > 0:
@@ -215,6 +221,11 @@ class GaborModel(SurfelModel):
     def residual(self) -> bool:
         """The base colour c0 is a parameter of its own and the waves a residual around it ("residual", "per-wave")."""
         return self.config.color_param in ("residual", "per-wave")
+
+    @property
+    def free_directions(self) -> bool:
+        """wave_freqs holds each wave's 2D vector in cycles per sigma ([N,width,2]), not a frequency along its slot."""
+        return bool(self.config.free_directions)
 
     @property
     def per_wave(self) -> bool:
@@ -255,7 +266,8 @@ class GaborModel(SurfelModel):
             self.color_a.copy_(colors + offset)
             self.color_b.copy_(colors - offset)
             self.wave_weights.fill_(1.0 / k)
-        self.wave_freqs.copy_(torch.rand(n, k, generator=generator))
+        freqs = torch.rand(n, k, generator=generator)
+        self.wave_freqs.copy_(freqs[..., None] * self.directions if self.free_directions else freqs)
         if self.learn_phase:
             self.wave_phases.copy_(torch.rand(n, k, generator=generator))
 
@@ -279,14 +291,27 @@ class GaborModel(SurfelModel):
             return self.wave_weights
         return self.wave_weights[..., None] * self.half_difference()[:, None, :]
 
+    def wave_vectors(self, freqs: torch.Tensor | None = None, index: torch.Tensor | None = None) -> torch.Tensor:
+        """[N,width,2] each wave's vector k in radians per sigma, as rendered, from `freqs` (default wave_freqs) and
+        the slots' orientations `index` (default wave_index): 2 pi f along the slot's orientation, f clamped to
+        FREQ_LIMIT; free directions: 2 pi times the stored vector, its length clamped to FREQ_LIMIT."""
+        f = self.wave_freqs if freqs is None else freqs
+        if self.free_directions:
+            return (2 * math.pi) * f * (FREQ_LIMIT / f.norm(dim=-1, keepdim=True).clamp_min(FREQ_LIMIT))
+        directions = self.directions.to(f)
+        if self.adaptive:
+            directions = directions[self.wave_index if index is None else index]  # each slot's own orientation
+        return (2 * math.pi) * f.clamp(-FREQ_LIMIT, FREQ_LIMIT)[..., None] * directions
+
+    def _wave_number_sq(self) -> torch.Tensor:
+        """[N,width] |k|^2 of each wave (unclamped, as the statistics have always read it)."""
+        k2 = (2 * math.pi * self.wave_freqs) ** 2
+        return k2.sum(-1) if self.free_directions else k2
+
     def surfels(self, camera: Camera) -> Surfels:
         g = self.geometry()
         w = self.wave_weights
-        if self.adaptive:
-            directions = self.directions.to(w)[self.wave_index]  # [N,width,2]: each slot's own orientation
-            counts = self.wave_counts
-        else:
-            directions, counts = self.directions.to(w), None
+        counts = self.wave_counts if self.adaptive else None
         if self.residual:
             base = self.color_base
         elif self.adaptive:
@@ -302,7 +327,7 @@ class GaborModel(SurfelModel):
             coeffs = torch.cat([self.sh_rest.new_zeros(self.sh_rest.shape[0], 1, 3), self.sh_rest], 1)
             base = base + eval_sh(self.config.sh_degree, coeffs, view_directions(self.means, camera))
         amplitudes = self.amplitudes()
-        vectors = (2 * math.pi) * self.wave_freqs.clamp(-FREQ_LIMIT, FREQ_LIMIT)[..., None] * directions
+        vectors = self.wave_vectors()
         return Surfels(g["means"], g["quats"], g["scales"], g["opacities"], base, vectors, self.phases(), amplitudes,
                        wave_counts=counts)
 
@@ -321,11 +346,16 @@ class GaborModel(SurfelModel):
         half on cB) where the model keeps folded weights (adaptive waves); without them the weights stay and only
         the frequencies follow (the pattern is then shifted by the child's offset)."""
         rows = dict(rows)
-        freqs = rows["wave_freqs"].clamp(-FREQ_LIMIT, FREQ_LIMIT)  # [M,width]
-        directions = self.directions.to(freqs)
-        directions = directions[rows["wave_index"]] if self.adaptive else directions.expand(freqs.shape[0], -1, -1)
-        shift = 2 * math.pi * freqs * (directions * offsets.to(freqs)[:, None, :]).sum(-1)  # k.offset [M,width]
-        rows["wave_freqs"] = freqs / shrink
+        if self.free_directions:
+            vectors = self.wave_vectors(rows["wave_freqs"])  # [M,width,2]
+            shift = (vectors * offsets.to(vectors)[:, None, :]).sum(-1)  # k.offset [M,width]
+            rows["wave_freqs"] = vectors / (2 * math.pi * shrink)
+        else:
+            freqs = rows["wave_freqs"].clamp(-FREQ_LIMIT, FREQ_LIMIT)  # [M,width]
+            directions = self.directions.to(freqs)
+            directions = directions[rows["wave_index"]] if self.adaptive else directions.expand(freqs.shape[0], -1, -1)
+            shift = 2 * math.pi * freqs * (directions * offsets.to(freqs)[:, None, :]).sum(-1)  # k.offset [M,width]
+            rows["wave_freqs"] = freqs / shrink
         if self.learn_phase:
             rows["wave_phases"] = torch.remainder(rows["wave_phases"] + shift + math.pi, 2 * math.pi) - math.pi
             return rows
@@ -443,7 +473,7 @@ class GaborModel(SurfelModel):
 
     def _mean_cos(self) -> torch.Tensor:
         """[N,width]: cos(k.(u,v) + phi) averaged over u,v ~ N(0, I), = cos(phi) e^{-|k|^2/2}."""
-        return torch.cos(self.phases()) * torch.exp(-(2 * math.pi * self.wave_freqs) ** 2 / 2)
+        return torch.cos(self.phases()) * torch.exp(-self._wave_number_sq() / 2)
 
     @torch.no_grad()
     def wave_statistics(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -452,7 +482,7 @@ class GaborModel(SurfelModel):
         Over the surfel's Gaussian (u,v ~ N(0,I) in sigma units) the wave a cos(k.(u,v) + phi) has mean
         a cos(phi) e^{-|k|^2/2} and second moment a^2 (1 + cos(2 phi) e^{-2|k|^2}) / 2. contribution = opacity x the
         standard deviation (largest channel): how far the wave moves the surfel's colour away from its mean."""
-        phi, k2 = self.phases(), (2 * math.pi * self.wave_freqs) ** 2
+        phi, k2 = self.phases(), self._wave_number_sq()
         amp = self.amplitudes()  # [N,width,3]
         mean = amp * self._mean_cos()[..., None]
         second = amp ** 2 * ((1 + torch.cos(2 * phi) * torch.exp(-2 * k2)) / 2)[..., None]
