@@ -3,8 +3,9 @@
 Both ways of spending bytes that the zoo measured to pay per byte, on one surfel: a Beta kernel (one number a surfel,
 sharper edges and fewer tiles touched) and waves only where the training views show they are worth their bytes
 (gabor-adaptive: 8 orientations to start, pruned late by measured cost; a surfel without waves is stored as a plain
-surfel). Each wave carries its own RGB amplitude (color_param "per-wave"): stripes of several colours fit on one
-surfel, and a surfel with one wave stores 5 values for it where the shared colour difference costs 6 (BENCHMARKS.md,
+surfel). Each wave carries its own RGB amplitude (color_param "per-wave") and learns its own direction
+(free_directions): stripes of several colours at any angle fit on one surfel, for 6 stored values a wave where a
+wave of the fixed fan with a colour difference shared by the surfel stores 3, plus 3 a waved surfel (BENCHMARKS.md,
 "Waves with a colour each"). Under a byte budget (TrainConfig.max_bytes, `compare --budgets`) it starts with as many surfels as fit plain
 and sheds, by measured cost, waves or its weakest surfels until it fits (training/budget.py).
 """
@@ -21,6 +22,9 @@ class BetaGaborConfig(AdaptiveGaborConfig):
     color_param: str = field(default="per-wave", metadata={
         "help": "per-wave: colour = base + sum_i a_i cos(t_i), an RGB amplitude a_i for each wave; residual: the waves "
                 "share one colour difference d a surfel (a_i = w_i d); paper: the paper's form (see gabor)"})
+    free_directions: bool = field(default=True, metadata={
+        "help": "each wave learns its direction: a 2D wave vector (started on the fan of orientations) instead of a "
+                "frequency along a fixed orientation; --no-free-directions: the fan's fixed orientations"})
 
 
 class BetaGaborModel(BetaFalloff, GaborModel):
