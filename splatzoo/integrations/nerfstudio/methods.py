@@ -24,7 +24,7 @@ MEMBERS = {  # member -> what ns-train --help says of it
     "gabor": "splatzoo's 3D Gabor surfels: N waves of learnable frequency, weight and phase in each",
     "gabor-adaptive": "splatzoo's gabor with waves only where the training views show they pay",
     "beta": "splatzoo's 2D surfels with a learned Beta-kernel falloff",
-    "beta-gabor": "splatzoo's gabor-adaptive waves, a colour each, on surfels with beta's learned falloff",
+    "beta-gabor": "splatzoo's gabor-adaptive waves, a colour and direction each, on surfels with beta's learned falloff",
     "textured": "splatzoo's surfels with a small RGBA texture each",
     "neural-gabor": "splatzoo's surfels with a tiny sine network each",
 }
