@@ -188,11 +188,10 @@ class GaborModel(SurfelModel):
     def __init__(self, config: GaborConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
         n, k = num_primitives, config.n_waves
-        if self.per_wave:
+        if self.residual:
             self.color_base = nn.Parameter(torch.zeros(n, 3))
-        elif self.residual:
-            self.color_base = nn.Parameter(torch.zeros(n, 3))
-            self.color_diff = nn.Parameter(torch.zeros(n, 3))
+            if not self.per_wave:  # per-wave: each wave holds its own colour
+                self.color_diff = nn.Parameter(torch.zeros(n, 3))
         else:
             self.color_a = nn.Parameter(torch.zeros(n, 3))
             self.color_b = nn.Parameter(torch.zeros(n, 3))
