@@ -127,16 +127,21 @@ class ModelSpec:
     extra: dict = field(default_factory=dict)
 
 
-def _validate_model_spec(obj: Any, name: str) -> ModelSpec:
-    if callable(obj) and not isinstance(obj, (ModelSpec, type)):
+def _entry_spec(obj: Any, name: str, spec_type: type, type_name: str):
+    """The spec an entry point names (or a factory of it returns), checked for its type, API version and name."""
+    if callable(obj) and not isinstance(obj, (spec_type, type)):
         obj = obj()
-    if not isinstance(obj, ModelSpec):
-        raise PluginError(f"entry point must name a splatzoo.ModelSpec, got {type(obj).__name__}")
+    if not isinstance(obj, spec_type):
+        raise PluginError(f"entry point must name a {type_name}, got {type(obj).__name__}")
     if obj.api_version != API_VERSION:
         raise PluginError(f"plugin targets splatzoo model API {obj.api_version}, this splatzoo has {API_VERSION}")
     if obj.name != name:
         raise PluginError(f"entry point name {name!r} differs from the spec's name {obj.name!r}")
     return obj
+
+
+def _validate_model_spec(obj: Any, name: str) -> ModelSpec:
+    return _entry_spec(obj, name, ModelSpec, "splatzoo.ModelSpec")
 
 
 MODELS: Registry[ModelSpec] = Registry("model", entry_point_group="splatzoo.models",
@@ -178,14 +183,7 @@ BUILTIN_KIND_NAMES: set[str] = set()
 
 
 def _validate_appearance_kind(obj: Any, name: str) -> AppearanceKindSpec:
-    if callable(obj) and not isinstance(obj, (AppearanceKindSpec, type)):
-        obj = obj()
-    if not isinstance(obj, AppearanceKindSpec):
-        raise PluginError(f"entry point must name a splatzoo.registry.AppearanceKindSpec, got {type(obj).__name__}")
-    if obj.api_version != API_VERSION:
-        raise PluginError(f"plugin targets splatzoo model API {obj.api_version}, this splatzoo has {API_VERSION}")
-    if obj.name != name:
-        raise PluginError(f"entry point name {name!r} differs from the spec's name {obj.name!r}")
+    obj = _entry_spec(obj, name, AppearanceKindSpec, "splatzoo.registry.AppearanceKindSpec")
     if name in BUILTIN_KIND_NAMES:
         raise PluginError(f"{name!r} is a built-in appearance kind (a section of csrc/surfel_math.h); the plugin must "
                           "use another name")

@@ -66,3 +66,19 @@ def trained_2dgs(tmp_path_factory):
           root / "2dgs", progress=False, evaluate_at_end=False)
     model, scene, _ = load_run(root / "2dgs", "cpu")
     return model, scene.test[0], root / "2dgs"
+
+
+def install_plugin(tmp_path_factory, source: Path) -> dict:
+    """Install the test plugin at `source` (tests/plugins/...) into a fresh folder, built from a copy so that no
+    build artefacts land in the source tree; the environment whose PYTHONPATH finds it."""
+    import subprocess
+
+    target = tmp_path_factory.mktemp("site")
+    build = tmp_path_factory.mktemp("build")
+    subprocess.run(["cp", "-r", str(source), str(build)], check=True)
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
+                    "--no-warn-script-location", "--target", str(target), str(build / source.name)],
+                   check=True, capture_output=True)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(target) + os.pathsep + env.get("PYTHONPATH", "")
+    return env

@@ -12,7 +12,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-import os
 import re
 import subprocess
 import sys
@@ -29,6 +28,7 @@ from splatzoo.rasterizers.reference import KIND_TWINS
 from splatzoo.registry import APPEARANCE_KINDS, AppearanceKindSpec, register_appearance_kind
 from splatzoo.testing import sphere_and_wall
 from splatzoo.types import BUILTIN_KINDS, SURFEL_FIELDS, Surfels, surfel_field
+from conftest import install_plugin
 
 CSRC = Path(__file__).resolve().parents[1] / "splatzoo" / "csrc"
 PLUGIN = Path(__file__).parent / "plugins" / "splatzoo_wavekind"
@@ -314,15 +314,7 @@ def test_a_kind_spec_is_checked_when_registered():
 
 @pytest.fixture(scope="module")
 def plugin_env(tmp_path_factory):
-    target = tmp_path_factory.mktemp("site")
-    build = tmp_path_factory.mktemp("build")
-    subprocess.run(["cp", "-r", str(PLUGIN), str(build)], check=True)  # no build artefacts in the source tree
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-                    "--no-warn-script-location", "--target", str(target), str(build / PLUGIN.name)],
-                   check=True, capture_output=True)
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(target) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
+    return install_plugin(tmp_path_factory, PLUGIN)
 
 
 def test_a_plugin_kind_is_found_by_its_entry_point(plugin_env):

@@ -1,26 +1,18 @@
 """Third-party models through the `splatzoo.models` entry-point group: installed out of tree, no edit to splatzoo."""
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from conftest import install_plugin
+
 PLUGIN = Path(__file__).parent / "plugins" / "splatzoo_checker"
 
 
 @pytest.fixture(scope="module")
 def plugin_env(tmp_path_factory):
-    target = tmp_path_factory.mktemp("site")
-    build = tmp_path_factory.mktemp("build")
-    # build from a copy so that no build artefacts land in the source tree
-    subprocess.run(["cp", "-r", str(PLUGIN), str(build)], check=True)
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-                    "--no-warn-script-location", "--target", str(target), str(build / PLUGIN.name)],
-                   check=True, capture_output=True)
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(target) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
+    return install_plugin(tmp_path_factory, PLUGIN)
 
 
 def run(env, *args):
