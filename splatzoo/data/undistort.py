@@ -20,12 +20,12 @@ import hashlib
 import os
 import re
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path
 from ..errors import DataError
 from .camera_models import check_lens, fold_warning, for_undistortion, import_pycolmap
 from .scene import read_image, read_mask
@@ -158,7 +158,7 @@ def _warp(options, lens, px: np.ndarray) -> np.ndarray:
 
 
 def _write_png(path: Path, px: np.ndarray) -> None:
-    """Write atomically (a temporary file, then rename): a cache file is whole or absent. Older copies of the same
+    """Write atomically (splatzoo.atomic): a cache file is whole or absent. Older copies of the same
     photo (another stamp), left by a changed photo or lens, are deleted."""
     import cv2
 
@@ -173,14 +173,8 @@ def _write_png(path: Path, px: np.ndarray) -> None:
         blocking = next((p for p in reversed(path.parents) if p.exists() and not p.is_dir()), path.parent)
         raise DataError(f"cannot write the undistorted image {path}: {blocking} is a file where splatzoo needs a "
                         "folder; move or delete that file and load again") from None
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".png")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data.tobytes())
     pattern = re.compile(re.escape(path.name.rsplit(".", 2)[0]) + r"\.[0-9a-f]{12}\.png")
     for stale in path.parent.iterdir():
         if stale != path and pattern.fullmatch(stale.name):
