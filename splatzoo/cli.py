@@ -762,6 +762,10 @@ def compare_command(
                                           "every budget, each a fraction of the first model's stored size at its "
                                           "count or a size (5%,25%,100% or 20kB,200kB); writes rate.png and a rate "
                                           "table"),
+    budget_start: Optional[float] = typer.Option(None, "--budget-start", help="with --budgets: each budgeted run "
+                                                 "starts with this many times the primitives that fit its budget "
+                                                 "(default 2) and sheds those that cost its views least down to it "
+                                                 "from half-way (1: start with what fits)"),
     store: str = _STORE,
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other "
@@ -786,7 +790,7 @@ def compare_command(
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
             strategy=strategy, seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite,
             equal_bytes=equal_bytes, antialias=antialias, random_downscale=random_downscale,
-            scene_options=scene_options, budgets=budgets, store=store)
+            scene_options=scene_options, budgets=budgets, store=store, budget_start=budget_start)
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png"
                f"{', rate.png' if budgets else ''}, runs/<model>/")

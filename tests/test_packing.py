@@ -246,7 +246,7 @@ def test_compare_budgets_trains_every_model_at_every_budget(tmp_path):
     data = make_synthetic_scene("sweater", tmp_path / "data", views=6, width=32, height=32)
     out = tmp_path / "cmp"
     report = compare(["2dgs", "gabor"], data, out, iterations=20, num_primitives=600, budgets="25%,100%",
-                     store="8bit", progress=False)
+                     store="8bit", progress=False, budget_start=1)
     rate = report["rate"]
     assert [(r["model"], r["budget"]) for r in rate] == [("2dgs", "25%"), ("gabor", "25%"), ("2dgs", "100%"),
                                                          ("gabor", "100%")]
@@ -268,6 +268,28 @@ def test_compare_budgets_trains_every_model_at_every_budget(tmp_path):
     assert not (tmp_path / "small" / "runs").exists()
     with pytest.raises(SplatzooError, match="give one of them"):
         compare(["2dgs"], data, out, iterations=20, budgets="5%", equal_bytes=True, progress=False)
+
+
+def test_budgeted_runs_start_with_twice_what_fits_and_shed_to_the_budget(tmp_path):
+    from splatzoo.compare import BUDGET_START, compare
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    data = make_synthetic_scene("sweater", tmp_path / "data", views=6, width=32, height=32)
+    out = tmp_path / "cmp"
+    report = compare(["2dgs", "beta-gabor"], data, out, iterations=40, num_primitives=300, budgets="30%,100%",
+                     store="8bit", progress=False)
+    assert report["settings"]["budget_start"] == BUDGET_START == 2
+    for r in report["rate"]:
+        assert r["start_primitives"] == 2 * r["fit_primitives"], r
+        assert r["stored_bytes"] <= r["budget_bytes"], r     # shed down to the budget
+        assert r["num_primitives"] <= r["fit_primitives"], r
+        assert r["run"] != r["model"]                        # 100% is a run of its own, not the unbudgeted one
+        assert r["stored_bytes"] == (out / "runs" / r["run"] / "model.szp").stat().st_size
+    assert "each run started with 2x the primitives that fit" in (out / "report.md").read_text()
+    for bad in (0.5, float("nan"), 17):
+        with pytest.raises(SplatzooError, match="--budget-start must be a number from 1 to 16"):
+            compare(["2dgs"], data, tmp_path / "bad", iterations=20, budgets="50%", budget_start=bad, progress=False)
+        assert not (tmp_path / "bad").exists()
 
 
 # --- a byte budget -----------------------------------------------------------------------------------------------
