@@ -109,7 +109,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     count ('25%', 0.25) or a size in bytes ('200kB', '1.5MB', 200000). The first model is trained at its count,
     then every model at every budget, starting with `budget_start` times as many primitives as its packed file can
     hold within it (budget_count) and shedding down to the budget from half-way (training/budget.py), in
-    out/runs/<label>@<count>; rate.png and the report's rate table plot PSNR, LPIPS and FPS against stored bytes. `store`: the precision every model is stored (and fine-tuned) at (packing.PRECISIONS)."""
+    out/runs/<label>@<count>; rate.png and the report's rate table plot PSNR, LPIPS and FPS against stored bytes.
+    `store`: the precision every model is stored (and fine-tuned) at (packing.PRECISIONS)."""
     from .data import load_scene
 
     choices, model_configs = _checked_choices(models)

@@ -5,9 +5,10 @@ From FROM to UNTIL of the run, STEPS times, the model sheds a share of what it h
 meets the budget at UNTIL and trains on without the shed parts for the rest of the run. Each time, what the model
 judges worth nothing goes first (SplatModel.shed_free: adaptive waves' measured pruning), then every way the model
 offers (SplatModel.shedding_options: its weakest surfels; beta-gabor and gabor-adaptive also their faintest waves)
-is rendered on the trainer's probe views, and the one that raises their error least is taken. So a model that starts
-as rich as its count allows keeps waves where they are worth more than the surfels they cost, and becomes a plain
-2DGS model of fewer surfels where they are not. After UNTIL the budget is only checked (nothing grows a model with
+is rendered on the trainer's probe views, and the one that raises their error least is taken, a quarter of the
+shedding's excess at a time (CHOICES), so that one shedding can give up some waves and some surfels. So a model that
+starts as rich as its count allows keeps waves where they are worth more than the surfels they cost, and becomes a
+plain 2DGS model of fewer surfels where they are not. After UNTIL the budget is only checked (nothing grows a model with
 a fixed count).
 """
 from __future__ import annotations
@@ -19,7 +20,10 @@ from ..zoo import stored_bytes
 FROM = 0.5    # the first shedding, as a fraction of the run
 UNTIL = 0.85  # the model is within its budget from here on
 STEPS = 8     # sheddings between FROM and UNTIL
-MAX_ROUNDS = 12  # choices per shedding (each frees what one way can; the last ones finish a partial one)
+CHOICES = 4   # each choice frees at most this fraction of the shedding's excess: one choice for all of it takes the
+              # whole cut in one kind (boots at 256 px, 100%: the last shedding took 1,869 waves at once and lost 0.9
+              # dB against four choices; BENCHMARKS.md, "Budgeted runs start with twice what fits")
+MAX_ROUNDS = 16  # choices per shedding at most (CHOICES, and what a way that frees less than it asked leaves over)
 
 
 def shedding_steps(iterations: int) -> list[int]:
@@ -43,10 +47,11 @@ def enforce(net, optimizer, probe_error, max_bytes: int, precision: str, share: 
     shed = [f"{freed['removed']} waves worth nothing"] if freed and freed.get("removed") else []
     size = stored_bytes(net, precision)
     target = max_bytes + (1 - share) * max(0, size - max_bytes)
+    portion = math.ceil(max(0, size - target) / CHOICES)
     for _ in range(MAX_ROUNDS):
         if size <= target:
             break
-        options = net.shedding_options(math.ceil(size - target), precision, optimizer)
+        options = net.shedding_options(min(portion, math.ceil(size - target)), precision, optimizer)
         if not options:
             break
         errors = [probe_error(o.preview) if probe_error is not None else 0.0 for o in options]
