@@ -144,3 +144,17 @@ def test_extremes_render_finite_and_as_their_limits(extreme, color_param):
         torch.testing.assert_close(out.rgb, rasterize(plain, cam, backend="cpu").rgb, rtol=0, atol=1e-9)
     if extreme == "tightest":
         assert float(s.falloff.detach().min()) == pytest.approx(MAX_FALLOFF)
+
+
+def test_a_file_from_before_free_directions_loads_with_the_fan(tmp_path):
+    """A beta-gabor file whose stored config has no free_directions (written before the option existed, when every
+    wave had one frequency along the fan) loads as the fan, not as today's default."""
+    model = splatzoo.create_model("beta-gabor", torch.rand(20, 3), torch.rand(20, 3), free_directions=False)
+    path = tmp_path / "old.pt"
+    splatzoo.save_model(model, path)
+    ckpt = torch.load(path, weights_only=True)
+    del ckpt["config"]["free_directions"]
+    torch.save(ckpt, path)
+    back = splatzoo.load_model(path)
+    assert back.config.free_directions is False and back.wave_freqs.shape == model.wave_freqs.shape
+    assert splatzoo.create_model("beta-gabor", torch.rand(2, 3), torch.rand(2, 3)).config.free_directions is True

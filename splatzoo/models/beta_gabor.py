@@ -12,6 +12,7 @@ measured cost, waves or its weakest surfels until it fits (training/budget.py).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from .beta import BetaFalloff
 from .gabor import AdaptiveGaborConfig, GaborModel
@@ -25,6 +26,9 @@ class BetaGaborConfig(AdaptiveGaborConfig):
     free_directions: bool = field(default=True, metadata={
         "help": "each wave learns its direction: a 2D wave vector (started on the fan of orientations) instead of a "
                 "frequency along a fixed orientation; --no-free-directions: the fan's fixed orientations"})
+
+    # beta-gabor files written before free directions existed store one frequency a wave along the fan
+    stored_defaults: ClassVar[dict] = {**AdaptiveGaborConfig.stored_defaults, "free_directions": False}
 
 
 class BetaGaborModel(BetaFalloff, GaborModel):
