@@ -8,8 +8,8 @@ offers (SplatModel.shedding_options: its weakest surfels; beta-gabor and gabor-a
 is rendered on the trainer's probe views, and the one that raises their error least is taken, a quarter of the
 shedding's excess at a time (CHOICES), so that one shedding can give up some waves and some surfels. So a model that
 starts as rich as its count allows keeps waves where they are worth more than the surfels they cost, and becomes a
-plain 2DGS model of fewer surfels where they are not. After UNTIL the budget is only checked (nothing grows a model with
-a fixed count).
+plain 2DGS model of fewer surfels where they are not. After UNTIL the budget is only checked (nothing grows a model
+with a fixed count).
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from ..zoo import stored_bytes
 FROM = 0.5    # the first shedding, as a fraction of the run
 UNTIL = 0.85  # the model is within its budget from here on
 STEPS = 8     # sheddings between FROM and UNTIL
-CHOICES = 4   # each choice frees at most this fraction of the shedding's excess: one choice for all of it takes the
+CHOICES = 4   # each choice frees at most 1/CHOICES of the shedding's excess: one choice for all of it takes the
               # whole cut in one kind (boots at 256 px, 100%: the last shedding took 1,869 waves at once and lost 0.9
               # dB against four choices; BENCHMARKS.md, "Budgeted runs start with twice what fits")
 MAX_ROUNDS = 16  # choices per shedding at most (CHOICES, and what a way that frees less than it asked leaves over)
