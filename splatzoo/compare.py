@@ -114,6 +114,10 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     from .data import load_scene
 
     choices, model_configs = _checked_choices(models)
+    budget_start = BUDGET_START if budget_start is None else budget_start
+    if not (isinstance(budget_start, (int, float)) and math.isfinite(budget_start) and 1 <= budget_start <= 16):
+        raise SplatzooError(f"--budget-start must be a number from 1 to 16 (how many times the primitives that fit "
+                            f"a budget each budgeted run starts with), got {budget_start}")
     if strategy != "auto" and not densify:
         raise SplatzooError(f"--strategy {strategy} chooses how densification grows the count; add --densify, or "
                             "leave --strategy out for the fixed-count protocol")
@@ -135,10 +139,6 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         raise SplatzooError("--equal-bytes is the single budget of the first model's size, one point of what "
                             "--budgets draws: give one of them")
     sizes = parse_budgets(budgets) if budgets else []
-    budget_start = BUDGET_START if budget_start is None else budget_start
-    if not (isinstance(budget_start, (int, float)) and math.isfinite(budget_start) and 1 <= budget_start <= 16):
-        raise SplatzooError(f"--budget-start must be a number from 1 to 16 (how many times the primitives that fit "
-                            f"a budget each budgeted run starts with), got {budget_start}")
     _refuse_small_budgets(choices, sizes, num_primitives or scene.points.shape[0], store)
     runner = _Runs(scene, scene_options, model_configs, base_cfg, overwrite=overwrite, backend=backend,
                    progress=progress, folders={c.label: Run(out / "runs" / _safe(c.label)) for c in choices})
@@ -270,7 +270,7 @@ def _write_report(out: Path, scene, report: dict, rate: list, folders: dict) -> 
 
 
 def rate_curves(choices, sizes, scene, out: Path, store: str, runs: dict, run_dirs: dict, plan, train_or_reuse,
-                budget_start: float = 1.0) -> list:
+                budget_start: float) -> list:
     """compare --budgets: every model at every budget (the first model's run at its count, in `runs`, sets the
     fractions), each run planned (and refused, if it must be) before any trains; one record per (budget, model).
     Each starts with `budget_start` times the primitives that fit (BUDGET_START)."""
