@@ -155,6 +155,23 @@ def test_a_fisheye_flag_on_a_perspective_model_names_the_conflict(tmp_path):
         load_scene(root, test_every=0)
 
 
+def test_a_fisheye_model_marked_not_fisheye_names_the_conflict(tmp_path):
+    root = write_capture(tmp_path / "d", "OPENCV_FISHEYE", {"k1": 0.05})
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"][2]["is_fisheye"] = False
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError) as e:
+        load_scene(root, test_every=0)
+    msg = str(e.value)
+    assert ("frame 2 is marked is_fisheye: false (in the frame) but its camera_model is OPENCV_FISHEYE (at the top of "
+            "the file), a fisheye model; the two disagree") in msg, msg
+    assert "remove is_fisheye or set it to true" in msg and "set camera_model to OPENCV" in msg
+    del meta["frames"][2]["is_fisheye"]
+    meta["is_fisheye"] = True   # agreeing flags load
+    (root / "transforms.json").write_text(json.dumps(meta))
+    assert len(load_scene(root, test_every=0).train) == len(meta["frames"])
+
+
 def test_masks_a_transforms_file_names_are_used_and_missing_ones_refused_unless_skipped(tmp_path):
     root = write_capture(tmp_path / "d", "PINHOLE", {}, n=4)
     meta = json.loads((root / "transforms.json").read_text())

@@ -190,14 +190,18 @@ def _camera_model(frame: dict, meta: dict, where: Path, i: int) -> str:
         return "FISHEYE" if fisheye else "PERSPECTIVE"
     if not isinstance(model, str):
         raise DataError(f"{where}: camera_model must be a name such as OPENCV, not {model!r:.60}")
+    at = {k: "in the frame" if k in frame else "at the top of the file" for k in ("is_fisheye", "camera_model")}
     if model in PERSPECTIVE_MODELS and not fisheye:
         return "PERSPECTIVE"
     if model in PERSPECTIVE_MODELS:
-        at = {k: "in the frame" if k in frame else "at the top of the file" for k in ("is_fisheye", "camera_model")}
         raise DataError(f"{where}: frame {i} is marked is_fisheye: true ({at['is_fisheye']}) but its camera_model is "
                         f"{model} ({at['camera_model']}), a perspective model; the two disagree. For a fisheye lens "
                         "set camera_model to OPENCV_FISHEYE (distortion k1..k4); otherwise remove is_fisheye or set "
                         "it to false")
+    if model in FISHEYE_MODELS and fisheye is False:
+        raise DataError(f"{where}: frame {i} is marked is_fisheye: false ({at['is_fisheye']}) but its camera_model is "
+                        f"{model} ({at['camera_model']}), a fisheye model; the two disagree. For a fisheye lens remove "
+                        "is_fisheye or set it to true; for a perspective lens set camera_model to OPENCV (or PINHOLE)")
     if model in FISHEYE_MODELS:
         return "FISHEYE"
     known = ", ".join(PERSPECTIVE_MODELS + FISHEYE_MODELS)
