@@ -36,11 +36,26 @@ def json_line(record) -> str:
     return json.dumps(_finite(record), default=_jsonable, allow_nan=False) + "\n"
 
 
+def _unique_keys(pairs: list) -> dict:
+    keys = [k for k, _ in pairs]
+    if len(set(keys)) != len(keys):
+        twice = next(k for k in keys if keys.count(k) > 1)
+        raise ValueError(f"the key {twice[:60]!r} appears more than once in one object")
+    return dict(pairs)
+
+
+def strict_json(text: str | bytes) -> object:
+    """JSON that splatzoo wrote: an object that names a key twice is refused (ValueError). json.loads keeps the last
+    one silently, so an edited or crafted file could say one thing to a reader that checks the first."""
+    return json.loads(text, object_pairs_hook=_unique_keys)
+
+
 def read_json(path, what: str, fix: str) -> object:
-    """Parse a JSON file we wrote; a missing, unreadable or malformed one is a SplatzooError that says `fix`."""
+    """Parse a JSON file we wrote; a missing, unreadable or malformed one (keys named twice included) is a
+    SplatzooError that says `fix`."""
     path = Path(path)
     try:
-        return json.loads(path.read_text())
+        return strict_json(path.read_text())
     except FileNotFoundError:
         raise SplatzooError(f"{what} {path} does not exist; {fix}") from None
     except (OSError, UnicodeDecodeError, ValueError) as e:

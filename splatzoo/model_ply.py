@@ -67,6 +67,7 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
+from .io import strict_json
 from .model_checks import check_draws, repair_geometry
 from .ply import ply_type_name, read_ply_vertices, write_ply_vertices
 
@@ -331,8 +332,8 @@ def _header_model(path, comments: list[str], names: list[str]) -> tuple[str, dic
             model_name = c[len("splatzoo model "):].strip()
         elif c.startswith("splatzoo config "):
             try:
-                config = json.loads(c[len("splatzoo config "):])
-            except (json.JSONDecodeError, RecursionError) as e:
+                config = strict_json(c[len("splatzoo config "):])
+            except (ValueError, RecursionError) as e:
                 raise SplatzooError(f"{path}: the 'splatzoo config' header comment is not valid JSON "
                                     f"({str(e)[:100]}); export the model again") from None
             if not isinstance(config, dict):

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
+from .io import strict_json
 
 MAGIC = b"SZPK"
 VERSION = 2
@@ -177,7 +178,7 @@ def unpack_checkpoint(data: bytes, where: str = "packed model") -> dict:
         text = inflate.decompress(data[8:8 + length], MAX_HEADER)  # bounded: a crafted header cannot balloon
         if inflate.unconsumed_tail or not inflate.eof:
             raise ValueError(f"it does not inflate to a whole header of at most {MAX_HEADER} bytes")
-        header = json.loads(text.decode())
+        header = strict_json(text.decode())
     except (zlib.error, UnicodeDecodeError, ValueError) as e:
         raise _fail(where, f"its header is not valid compressed JSON ({str(e)[:100]})") from None
     if not isinstance(header, dict) or header.get("format") != "splatzoo-packed":

@@ -309,6 +309,34 @@ def test_config_comment_must_be_an_object_and_model_known(tmp_path):
         splatzoo.load_ply(path)
 
 
+def test_a_key_named_twice_is_refused_in_every_json_splatzoo_reads_back(tmp_path):
+    """json.loads keeps the last of two equal keys; a file splatzoo wrote never names one twice, so an edited one
+    that does is refused rather than read one way here and another way by a tool that keeps the first."""
+    import struct
+    import zlib
+
+    from splatzoo.io import read_json
+    from splatzoo.packing import header_dictionary, pack_checkpoint
+
+    (tmp_path / "r.json").write_text('{"model": "2dgs", "train": {"seed": 0, "seed": 1}}')
+    with pytest.raises(SplatzooError, match=r"r\.json is damaged \(the key 'seed' appears more than once"):
+        read_json(tmp_path / "r.json", "run record", "train the run again")
+    model = small_model()
+    config = json.dumps(model.checkpoint()["config"], separators=(",", ":"))
+    path = _with_comment(tmp_path, model, config, config[:-1] + ',"sh_degree":0}')
+    with pytest.raises(SplatzooError, match=r"'splatzoo config' header comment is not valid JSON \(the key "
+                                            r"'sh_degree' appears more than once"):
+        splatzoo.load_ply(path)
+    data = pack_checkpoint(model.checkpoint(), "8bit")
+    (length,) = struct.unpack_from("<I", data, 4)
+    text = zlib.decompressobj(zdict=header_dictionary()).decompress(data[8:8 + length]).decode()
+    assert text.startswith("{")
+    text = zlib.compress(('{"precision":"float32",' + text[1:]).encode())   # version 1: no dictionary
+    (tmp_path / "m.szp").write_bytes(data[:4] + struct.pack("<I", len(text)) + text + data[8 + length:])
+    with pytest.raises(SplatzooError, match=r"header is not valid compressed JSON \(the key 'precision' appears"):
+        load_model(tmp_path / "m.szp")
+
+
 def test_non_finite_values_in_a_ply(tmp_path):
     model = small_model("2dgs")
     with torch.no_grad():
