@@ -33,7 +33,7 @@ import torch
 from .errors import SplatzooError
 from .geometry import look_at_point
 from .io import say_progress as _say
-from .mesh_files import write_mesh
+from .mesh_files import check_mesh_target, write_mesh
 from .types import Camera
 
 DEPTH_KINDS = ("median", "expected")
@@ -241,10 +241,10 @@ def extract_mesh_from_run(run_dir, out=None, *, backend: str = "auto", progress=
     from .runs import Run
 
     run = Run(run_dir)
-    out = Path(out) if out is not None else run.path / "mesh.ply"
-    if out.suffix.lower() in (".pt", ".json", ".jsonl"):
-        raise SplatzooError(f"{out} is not a mesh file name; use .ply (or .obj/.off/.stl/.glb)")
+    # refused before minutes of work; a read-only run folder is named by run.writing, with the option to use
+    out = check_mesh_target(Path(out) if out is not None else run.path / "mesh.ply", writable=False)
     with run.writing("splatzoo extract-mesh", out, "--out FILE.ply"):
+        check_mesh_target(out)
         model, scene, _ = run.load(backend)
         mesh, _, _ = extract_mesh(model, [v.camera for v in scene.train], backend=backend, progress=progress, **options)
         write_mesh(mesh, out)

@@ -10,6 +10,7 @@ pygltflib and pillow are imported inside the functions that need them.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -256,6 +257,30 @@ def write_textured_mesh(mesh: TexturedMesh, out, *, unlit: bool = True) -> Path:
                         "it); choose one of these suffixes")
 
 
+MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb")  # what write_mesh writes (.ply recommended)
+
+
+def check_mesh_target(path, writable: bool = True) -> Path:
+    """Refuse a mesh file name that write_mesh could not write, before any mesh is made: a folder, a suffix it does
+    not write, a place where no file can be made (its nearest existing folder is a file or, with `writable`, not
+    writable)."""
+    path = Path(path)
+    fix = f"give a file name ending in {'/'.join(MESH_SUFFIXES)} in a writable folder"
+    if path.is_dir():
+        raise SplatzooError(f"cannot write the mesh to {path}: it is a folder; give a file name such as "
+                            f"{path / 'mesh.ply'}")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise SplatzooError(f"{path} is not a mesh file name splatzoo writes ({path.suffix or 'no suffix'}); {fix}")
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise SplatzooError(f"cannot write the mesh to {path}: {folder} is a file, not a folder; {fix}")
+    if writable and not os.access(folder, os.W_OK | os.X_OK):
+        raise SplatzooError(f"cannot write the mesh to {path}: {folder} is not writable; {fix}")
+    return path
+
+
 def write_mesh(mesh, path) -> Path:
     """Write an open3d legacy TriangleMesh (binary, with vertex colours) atomically; the format follows the
     suffix (.ply recommended).
@@ -265,9 +290,7 @@ def write_mesh(mesh, path) -> Path:
     by open3d itself. Vertex colours go into the OBJ as `v x y z r g b` and into the GLB as COLOR_0."""
     import open3d as o3d
 
-    path = Path(path)
-    if path.is_dir():
-        raise SplatzooError(f"cannot write the mesh to {path}: it is a folder; give a file name such as {path / 'mesh.ply'}")
+    path = check_mesh_target(path)
     if path.suffix.lower() in (".obj", ".glb"):
         if len(mesh.triangles) == 0:
             raise SplatzooError(f"cannot write {path}: the mesh has no triangles")

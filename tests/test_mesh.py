@@ -116,6 +116,20 @@ def test_empty_meshes_say_why(tmp_path):
         write_mesh(mesh, tmp_path)
 
 
+def test_a_mesh_file_name_that_cannot_be_written_is_refused_before_any_work(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()   # no model in it: a refusal that names --out comes before the run is read
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    for out, message in ((tmp_path, "it is a folder"), (tmp_path / "m", "(no suffix)"),
+                         (tmp_path / "m.xyz", "not a mesh file name splatzoo writes (.xyz)"),
+                         (blocker / "sub" / "m.ply", "file is a file, not a folder")):
+        r = runner.invoke(app, ["extract-mesh", str(run), "--out", str(out)])
+        assert isinstance(r.exception, SplatzooError) and message in str(r.exception), (out, r.output, r.exception)
+        assert "model" not in str(r.exception)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "run"] and not list(run.iterdir())
+
+
 def test_run_without_model(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
