@@ -22,9 +22,9 @@ register_model(ModelSpec("gabor-adaptive", GaborModel, AdaptiveGaborConfig,
                          "gabor with waves only where they pay: 8 orientations to start, late in training the waves "
                          "whose removal costs the training views under 0.02 dB go"))
 register_model(ModelSpec("beta-gabor", BetaGaborModel, BetaGaborConfig,
-                         "gabor-adaptive's waves (kept only where they pay), each with a colour and direction of its own, on surfels "
-                         "with beta's learned falloff; "
-                         "under a byte budget it sheds waves or its weakest surfels by measured cost"))
+                         "gabor-adaptive's waves (kept only where they pay), each with a colour and direction of its "
+                         "own, on surfels with beta's learned falloff; under a byte budget it sheds waves or its "
+                         "weakest surfels by measured cost"))
 register_model(ModelSpec("neural-gabor", NeuralGaborModel, NeuralGaborConfig,
                          "surfels whose colour is a tiny per-surfel sine network of (u, v) and the view direction, "
                          "with frequency-aware densification (Neural Gabor splatting)"))
