@@ -135,6 +135,41 @@ def test_a_file_where_the_undistorted_copies_go_is_named(tmp_path):
     assert not [p.name for p in root.iterdir() if p.name.startswith(".undistorted")]
 
 
+def test_an_older_splatzoo_s_whole_undistorted_copy_is_removed_and_nothing_else(tmp_path, monkeypatch, capsys):
+    """COLMAP datasets were once undistorted as a whole (images/, sparse/, source.json); the per-photo copies replace
+    that copy, in the dataset and, for a read-only dataset, in the cache, and leave other folders alone."""
+    import splatzoo.data.undistort as undistort
+
+    def older_copy(folder: Path, source: Path) -> None:
+        (folder / "images").mkdir(parents=True)
+        (folder / "sparse" / "0").mkdir(parents=True)
+        (folder / "images" / "f0.png").write_bytes(b"old")
+        (folder / "sparse" / "0" / "cameras.bin").write_bytes(b"old")
+        (folder / "source.json").write_text(json.dumps({"stamp": "0" * 40, "from": str(source)}))
+
+    root = write_capture(tmp_path / "d", "OPENCV", {"k1": 0.05}, colmap=True)
+    older_copy(root / "undistorted", root)
+    scene = load_scene(root, test_every=0)
+    kept = sorted(p.relative_to(root / "undistorted").as_posix() for p in (root / "undistorted").rglob("*")
+                  if p.is_file())
+    assert len(kept) == 3 and all(undistort.STAMPED.fullmatch(k.split("/")[-1]) for k in kept), kept
+    assert "removed 3 file(s) of an older undistorted copy" in capsys.readouterr().err
+    assert sorted(str(v.path) for v in scene.train) == sorted(str(root / "undistorted" / k) for k in kept)
+
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    other, access = tmp_path / "o", undistort.os.access
+    monkeypatch.setattr(undistort.os, "access", lambda p, mode: Path(p) != other and access(p, mode))  # read-only
+    other = write_capture(other, "OPENCV", {"k1": 0.05}, colmap=True)
+    older_copy(cache / "splatzoo" / "undistorted" / "aaaaaaaaaaaaaaaa", other)   # this dataset's, from before
+    older_copy(cache / "splatzoo" / "undistorted" / "bbbbbbbbbbbbbbbb", root)    # another dataset's
+    (cache / "splatzoo" / "undistorted" / "cccccccccccccccc").mkdir()            # not the older layout's
+    load_scene(other, test_every=0)
+    left = sorted(p.name for p in (cache / "splatzoo" / "undistorted").iterdir())
+    assert "aaaaaaaaaaaaaaaa" not in left and {"bbbbbbbbbbbbbbbb", "cccccccccccccccc"} < set(left) and len(left) == 3
+    assert "removed 3 file(s)" in capsys.readouterr().err
+
+
 def test_a_fisheye_flag_on_a_perspective_model_names_the_conflict(tmp_path):
     root = write_capture(tmp_path / "d", "OPENCV", {"k1": 0.05})
     meta = json.loads((root / "transforms.json").read_text())

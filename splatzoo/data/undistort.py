@@ -7,7 +7,9 @@ same map. The copies live in one folder per dataset, DATA/<folder name> (or ~/.c
 DATA> when DATA is read-only): the photo DATA/<path>.<ext> becomes <folder>/<path>.<stamp>.png and its mask
 <folder>/masks/<path>.<stamp>.png. The stamp is a fingerprint of the lens and the source file (path, size, time), so
 a copy is made once, reused while its photo and lens are unchanged, and replaced (the old one deleted) when either
-changes.
+changes. Copies of the layout older splatzoo versions made for COLMAP datasets (one whole undistorted dataset:
+images/, sparse/ and a source.json naming what it was made from) are removed when the per-photo copies are first made
+(remove_older_layout).
 
 Before any pixel is warped each distinct lens is checked: a lens that keeps too little of its photo is refused and one
 that keeps little is warned about (camera_models.check_lens), as is a lens whose distortion folds back inside the
@@ -17,8 +19,10 @@ refused.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
+import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +71,7 @@ def undistort_photos(root: Path, folder_name: str, photos: list[DistortedPhoto],
         raise DataError(f"{target} is a file, but splatzoo keeps the undistorted copies of {root}'s photos in a folder "
                         "of that name; move or delete that file and load again")
     _check_lenses(photos, fix)
+    remove_older_layout(root, target)
     pinholes: dict[tuple, object] = {}
     done, jobs = [], []
     for photo in photos:
@@ -104,6 +109,47 @@ def undistorted_dir(root: Path, folder_name: str) -> Path:
         return root / folder_name
     cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "splatzoo" / folder_name
     return cache / hashlib.sha1(str(root.resolve()).encode()).hexdigest()[:16]
+
+
+STAMPED = re.compile(r".+\.[0-9a-f]{12}\.png")  # a per-photo copy: <name>.<stamp>.png
+
+
+def remove_older_layout(root: Path, target: Path) -> int:
+    """Remove the undistorted dataset an older splatzoo made of `root`: in `target` (its images/, masks/ and sparse/
+    beside today's stamped copies, marked by a source.json with a "stamp"), and, for a read-only dataset, the cache
+    folder beside `target` whose source.json names `root`. Only what that layout wrote goes; returns the number of
+    files removed."""
+    def made_by_older_layout(folder: Path) -> bool:
+        try:
+            marker = json.loads((folder / "source.json").read_text())
+        except (OSError, ValueError):
+            return False
+        if not (isinstance(marker, dict) and "stamp" in marker):
+            return False
+        return folder == target or str(marker.get("from")) in (str(root), str(root.resolve()))
+
+    removed = 0
+    candidates = [target] + ([p for p in target.parent.iterdir() if p != target and p.is_dir()]
+                             if target.parent != root and target.parent.is_dir() else [])
+    for folder in candidates:
+        if not made_by_older_layout(folder):
+            continue
+        if folder != target:   # a whole cache folder of the older layout
+            removed += sum(1 for p in folder.rglob("*") if p.is_file())
+            shutil.rmtree(folder, ignore_errors=True)
+            continue
+        for sub in ("images", "masks", "sparse"):
+            for p in sorted((folder / sub).rglob("*")) if (folder / sub).is_dir() else []:
+                if p.is_file() and (sub == "sparse" or not STAMPED.fullmatch(p.name)):
+                    p.unlink(missing_ok=True)
+                    removed += 1
+        shutil.rmtree(folder / "sparse", ignore_errors=True)
+        (folder / "source.json").unlink(missing_ok=True)
+        removed += 1
+    if removed:
+        print(f"splatzoo: removed {removed} file(s) of an older undistorted copy of {root} (now kept photo by photo "
+              f"in {target})", file=sys.stderr, flush=True)
+    return removed
 
 
 def _lens_key(lens) -> tuple:
