@@ -14,13 +14,7 @@ from .figures import metric, pyplot, save_figure
 from .io import write_json, write_text
 from .runs import Run, differences, evaluate_run, made_by_other_code, make_record, train
 from .training import TrainConfig
-
-# Each budgeted run starts with this many times the primitives that fit its budget and sheds the ones that cost its
-# views least down to it from half-way (training/budget.py): the survivors of a larger start beat a count fixed from
-# the start for every member (2dgs on the quick sweater: +0.8 dB at 5%, +0.9 at 25%, +1.3 at 100%; BENCHMARKS.md,
-# "Budgeted runs start with twice what fits"), and 2dgs, which has no richness to shed, is not left as the one
-# member without that choice.
-BUDGET_START = 2.0
+from .training.budget import START as BUDGET_START  # each budgeted run starts with this many times what fits
 
 
 @dataclass

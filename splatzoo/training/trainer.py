@@ -138,7 +138,8 @@ class TrainConfig:
     max_bytes: int | None = field(default=None, metadata={
         "help": "a byte budget: the model ends the run no larger than this, stored at --store (the size of its "
                 "packed file). From half-way on it sheds what costs the training views least: its weakest surfels "
-                "or, for beta-gabor and gabor-adaptive, its faintest waves (training/budget.py)"})
+                "or, for beta-gabor and gabor-adaptive, its faintest waves (training/budget.py). Densification "
+                "grows it to twice the surfels that fit plain, to choose from"})
     log_every: int = 10
 
     # what a stored record written before an option's default changed meant where it lacks the key: runs from
@@ -366,10 +367,10 @@ class Trainer:
         self.reset_every = max(cfg.at(cfg.opacity_reset_interval), cfg.opacity_reset_interval // 3)
         # from the scene and the config alone, so that a resumed run has the same budget
         self.budget = cfg.max_primitives or densify_budget(scene, cfg.num_primitives or scene.points.shape[0])
-        if cfg.max_bytes:  # densification grows no further than the byte budget holds plain surfels
+        if cfg.max_bytes:  # densification grows to budget.START times the surfels the byte budget holds plain
             plain = copy.deepcopy(self.net).shed_richness().stored_row_bytes(cfg.store)
             per = float(plain.mean()) if plain.numel() else 1.0
-            self.budget = max(1, min(self.budget, int(cfg.max_bytes // max(per, 1.0))))
+            self.budget = max(1, min(self.budget, int(budget.START * (cfg.max_bytes // max(per, 1.0)))))
         self._probe_views = None  # (camera, image) pairs of _probe_error, made on its first call
         self.shedding_steps = set(budget.shedding_steps(cfg.iterations)) if cfg.max_bytes else set()
         self.net.probe_error = self._probe_error
