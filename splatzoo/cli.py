@@ -458,12 +458,9 @@ def _size_arg(value: Optional[str]) -> Optional[int]:
     """--max-bytes: a size in bytes, with a unit or without (200kB, 1.5MB, 120000)."""
     if value is None:
         return None
-    from .compare import parse_budgets
+    from .compare import parse_size
 
-    (text, kind, number), = parse_budgets([value] if isinstance(value, str) else value)
-    if kind != "bytes":
-        raise typer.BadParameter(f"{text!r}: give a size (200kB, 1.5MB, 120000), not a fraction")
-    return int(number)
+    return parse_size(value, "--max-bytes")
 
 
 def _given(ctx: typer.Context) -> set[str]:

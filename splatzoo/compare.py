@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import re
 import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -296,14 +297,25 @@ def rate_curves(choices, sizes, scene, out: Path, store: str, runs: dict, run_di
 
 
 _UNITS = {"b": 1, "kb": 1e3, "mb": 1e6, "gb": 1e9, "kib": 1024, "mib": 1024**2, "gib": 1024**3}
+_SIZE = re.compile(r"([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(%|[kKmMgG]i?[bB]|[bB])?")  # a number and its unit
+
+
+def parse_size(text: str, option: str) -> int:
+    """'200kB', '1.5MB' or '120000' -> bytes, for an option that takes one size (train's --max-bytes)."""
+    m = _SIZE.fullmatch(str(text).strip())
+    if not m or m.group(2) == "%":
+        raise SplatzooError(f"{option}: {str(text)[:60]!r} is not a size; give one such as 200kB, 1.5MB or 120000 "
+                            "(bytes)")
+    value = float(m.group(1)) * _UNITS[(m.group(2) or "b").lower()]
+    if not (math.isfinite(value) and value >= 1):
+        raise SplatzooError(f"{option}: {text!r} must be at least 1 byte")
+    return int(value)
 
 
 def parse_budgets(budgets) -> list[tuple[str, str, float]]:
     """'5%,25%,100%' or ['200kB', 0.25, 120000] -> [(text, 'fraction' | 'bytes', value)] in the order given. A
     fraction (a percentage, or a float) is of the first model's stored size at its count; a number with a unit (B,
     kB, MB, GB, KiB, MiB, GiB) or a whole number is bytes."""
-    import re
-
     items = [t for t in budgets.split(",") if t.strip()] if isinstance(budgets, str) else list(budgets)
     out = []
     for item in items:
@@ -312,7 +324,7 @@ def parse_budgets(budgets) -> list[tuple[str, str, float]]:
                 (f"{item}B", "bytes", float(item))
         else:
             text = str(item).strip()
-            m = re.fullmatch(r"([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(%|[kKmMgG]i?[bB]|[bB])?", text)
+            m = _SIZE.fullmatch(text)
             if not m:
                 raise SplatzooError(f"--budgets: {text!r} is not a budget; give fractions of the first model's size "
                                     "(5%,25%,100%) or sizes (200kB, 1.5MB, 120000), separated by commas")
@@ -332,14 +344,10 @@ def stored_cost(choice: ModelChoice, count: int, store: str, like=None) -> int:
     """The smallest stored size of `choice` with `count` primitives: as trained from the start, less what it can
     shed under a byte budget without losing primitives (SplatModel.shed_richness: a gabor-adaptive model's waves),
     with the render settings of the model `like` (a trained run's: its file records them too)."""
-    from .zoo import create_model, stored_bytes
+    from .zoo import plain_stored_bytes
 
-    g = torch.Generator().manual_seed(0)
-    model = create_model(choice.model, torch.rand(count, 3, generator=g), torch.full((count, 3), 0.5),
-                         **choice.options)
-    if like is not None:
-        model.set_render_settings(like.render_settings)
-    return stored_bytes(model.shed_richness(), store)
+    return plain_stored_bytes(choice.model, count, store, like.render_settings if like is not None else None,
+                              **choice.options)
 
 
 def too_small(choice: ModelChoice, text: str, budget: int, store: str, like=None) -> SplatzooError:

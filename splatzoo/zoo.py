@@ -82,6 +82,17 @@ def stored_bytes(model: SplatModel, precision: str | None = None) -> int:
     return len(pack_checkpoint(model.checkpoint(), precision or model.precision))
 
 
+def plain_stored_bytes(name: str, count: int, precision: str, render_settings=None, **options) -> int:
+    """The smallest stored size of model `name` (with `options`) holding `count` primitives: as created, less what it
+    can shed under a byte budget without losing primitives (SplatModel.shed_richness: adaptive waves), with
+    `render_settings` (its file records them too)."""
+    g = torch.Generator().manual_seed(0)
+    model = create_model(name, torch.rand(count, 3, generator=g), torch.full((count, 3), 0.5), **options)
+    if render_settings is not None:
+        model.set_render_settings(render_settings)
+    return stored_bytes(model.shed_richness(), precision)
+
+
 @contextlib.contextmanager
 def stored_values(model: SplatModel, precision: str):
     """Inside the block the model's parameters hold the values its packed file at `precision` loads back as; after

@@ -413,6 +413,31 @@ def test_a_run_within_a_byte_budget_ends_within_it_and_resumes(tmp_path):
     assert resumed.model.num_primitives == whole.model.num_primitives
 
 
+def test_a_byte_budget_that_holds_no_surfel_or_is_no_size_is_refused_before_the_run(tmp_path):
+    from splatzoo.data.synthetic import make_synthetic_scene
+
+    data = make_synthetic_scene("sweater", tmp_path / "data", views=4, width=32, height=32)
+    from splatzoo.models.base import RenderSettings
+    from splatzoo.zoo import plain_stored_bytes
+
+    # the file of one plain surfel, with the render settings the run records (anti-aliased, over black or None)
+    one = max(plain_stored_bytes("beta-gabor", 1, "8bit", RenderSettings(True, bg)) for bg in (None, (0.0, 0.0, 0.0)))
+    assert one > stored_cost(ModelChoice("beta-gabor", "beta-gabor"), 1, "8bit")  # the settings take header bytes
+    for size, message in ((str(one - 1), f"--max-bytes {one - 1:,} holds no beta-gabor surfel: the file of one costs "
+                                         f"{one:,} bytes stored as 8bit; give a larger budget"),
+                          ("5%", "--max-bytes: '5%' is not a size; give one such as 200kB"),
+                          ("0", "--max-bytes: '0' must be at least 1 byte"), ("nan", "is not a size")):
+        out = tmp_path / f"r{size}"
+        res = CliRunner().invoke(app, ["train", str(data), "--model", "beta-gabor", "-i", "4", "--store", "8bit",
+                                       "--max-bytes", size, "--out", str(out)])
+        assert res.exit_code != 0 and message in str(res.exception), (size, res.output, res.exception)
+        assert not out.exists()
+    res = CliRunner().invoke(app, ["train", str(data), "--model", "beta-gabor", "-i", "4", "--store", "8bit",
+                                   "--no-densify", "-n", "5", "--max-bytes", str(one), "--out", str(tmp_path / "r")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "r" / "model.szp").stat().st_size <= one
+
+
 def test_densification_grows_to_twice_what_the_byte_budget_holds(tmp_path):
     from splatzoo.data.synthetic import make_synthetic_scene
     from splatzoo.data import load_scene
@@ -420,8 +445,8 @@ def test_densification_grows_to_twice_what_the_byte_budget_holds(tmp_path):
 
     scene = load_scene(make_synthetic_scene("sweater", tmp_path / "data", views=4, width=32, height=32))
     for name, per in (("2dgs", 16), ("beta-gabor", 18)):   # 8-bit rows: 2DGS's 16 bytes; + falloff and wave mask
-        cfg = TrainConfig(iterations=10, num_primitives=20, max_bytes=200, store="8bit")
+        cfg = TrainConfig(iterations=10, num_primitives=60, max_bytes=600, store="8bit")
         trainer = Trainer.start(scene, name, make_config(name), cfg, "cpu", torch.device("cpu"))
         assert budget.START == 2   # the same start as compare's budgeted runs
-        assert trainer.budget == 2 * (200 // per) < Trainer.start(scene, name, make_config(name), TrainConfig(
-            iterations=10, num_primitives=20), "cpu", torch.device("cpu")).budget, name
+        assert trainer.budget == 2 * (600 // per) < Trainer.start(scene, name, make_config(name), TrainConfig(
+            iterations=10, num_primitives=60), "cpu", torch.device("cpu")).budget, name

@@ -19,7 +19,8 @@ from ..model_checks import densify_budget
 from ..evaluate import area_resize
 from ..packing import PRECISIONS
 from ..types import Camera, RenderOutput
-from ..zoo import create_model, model_from_checkpoint, stored_values
+from ..models.base import RenderSettings
+from ..zoo import create_model, model_from_checkpoint, plain_stored_bytes, stored_values
 from . import budget, frequency, mcmc
 from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .distributed import Comm
@@ -83,6 +84,19 @@ def check_start(scene, model: str, model_config, cfg, device: torch.device, init
     initial = initial if initial is not None else cfg.num_primitives or scene.points.shape[0]
     budget = (cfg.max_primitives or densify_budget(scene, initial)) if cfg.densify else initial
     check_memory(model, model_config, initial, budget, device)
+    if cfg.max_bytes:
+        check_byte_budget(scene, model, model_config, cfg)
+
+
+def check_byte_budget(scene, model: str, model_config, cfg) -> None:
+    """Refuse a --max-bytes that cannot hold the file of one plain primitive: no shedding could meet it."""
+    options = dataclasses.asdict(model_config) if dataclasses.is_dataclass(model_config) else dict(model_config or {})
+    # the file records the render settings: its size with either background the run may store
+    one = max(plain_stored_bytes(model, 1, cfg.store, RenderSettings(cfg.antialias, background), **options)
+              for background in (None, tuple(float(c) for c in scene.background)))
+    if cfg.max_bytes < one:
+        raise SplatzooError(f"--max-bytes {cfg.max_bytes:,} holds no {model} surfel: the file of one costs {one:,} "
+                            f"bytes stored as {cfg.store}; give a larger budget (or a smaller --store)")
 
 
 @dataclass
