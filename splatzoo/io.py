@@ -37,11 +37,12 @@ def json_line(record) -> str:
 
 
 def _unique_keys(pairs: list) -> dict:
-    keys = [k for k, _ in pairs]
-    if len(set(keys)) != len(keys):
-        twice = next(k for k in keys if keys.count(k) > 1)
-        raise ValueError(f"the key {twice[:60]!r} appears more than once in one object")
-    return dict(pairs)
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"the key {key[:60]!r} appears more than once in one object")
+        out[key] = value
+    return out
 
 
 def strict_json(text: str | bytes) -> object:
