@@ -26,9 +26,15 @@ class BetaGaborConfig(AdaptiveGaborConfig):
     free_directions: bool = field(default=True, metadata={
         "help": "each wave learns its direction: a 2D wave vector (started on the fan of orientations) instead of a "
                 "frequency along a fixed orientation; --no-free-directions: the fan's fixed orientations"})
+    freq_lr: float = field(default=1e-2, metadata={
+        "help": "learning rate of the wave vectors (Adam; about the most one moves a step, in cycles per sigma): "
+                "10x gabor's, so that in a short run a wave reaches stripes several cycles a sigma from its start "
+                "in [0, 1) (BENCHMARKS.md, \"Waves that learn their frequency ten times faster\")"})
 
-    # beta-gabor files written before free directions existed store one frequency a wave along the fan
-    stored_defaults: ClassVar[dict] = {**AdaptiveGaborConfig.stored_defaults, "free_directions": False}
+    # beta-gabor files written before free directions existed store one frequency a wave along the fan, and those
+    # from before freq_lr were trained at gabor's rate
+    stored_defaults: ClassVar[dict] = {**AdaptiveGaborConfig.stored_defaults, "free_directions": False,
+                                       "freq_lr": 1e-3}
 
 
 class BetaGaborModel(BetaFalloff, GaborModel):
