@@ -6,7 +6,9 @@ sharper edges and fewer tiles touched) and waves only where the training views s
 surfel). Each wave carries its own RGB amplitude (color_param "per-wave") and learns its own direction
 (free_directions): stripes of several colours at any angle fit on one surfel, for 6 stored values a wave where a
 wave of the fixed fan with a colour difference shared by the surfel stores 3, plus 3 a waved surfel (BENCHMARKS.md,
-"Waves with a colour each"). Under a byte budget (TrainConfig.max_bytes, `compare --budgets`) it sheds, by
+"Waves with a colour each"). The wave vectors learn at ten times gabor's rate (freq_lr), so that a short run
+reaches stripes several cycles a sigma from where they start ("Waves that learn their frequency ten times faster").
+Under a byte budget (TrainConfig.max_bytes, `compare --budgets`) it sheds, by
 measured cost, waves or its weakest surfels until it fits (training/budget.py).
 """
 from __future__ import annotations
