@@ -170,14 +170,24 @@ def test_an_older_splatzoo_s_whole_undistorted_copy_is_removed_and_nothing_else(
     assert "removed 3 file(s)" in capsys.readouterr().err
 
 
-def test_a_fisheye_flag_on_a_perspective_model_names_the_conflict(tmp_path):
-    root = write_capture(tmp_path / "d", "OPENCV", {"k1": 0.05})
+def _edited(root: Path, edit) -> dict:
+    """The transforms.json of `root` after `edit(meta)`, written back."""
     meta = json.loads((root / "transforms.json").read_text())
-    meta["is_fisheye"] = True
+    edit(meta)
     (root / "transforms.json").write_text(json.dumps(meta))
+    return meta
+
+
+def _refusal(root: Path) -> str:
     with pytest.raises(DataError) as e:
         load_scene(root, test_every=0)
-    msg = str(e.value)
+    return str(e.value)
+
+
+def test_a_fisheye_flag_on_a_perspective_model_names_the_conflict(tmp_path):
+    root = write_capture(tmp_path / "d", "OPENCV", {"k1": 0.05})
+    meta = _edited(root, lambda m: m.update(is_fisheye=True))
+    msg = _refusal(root)
     assert ("frame 0 is marked is_fisheye: true (at the top of the file) but its camera_model is OPENCV (at the top of "
             "the file), a perspective model; the two disagree") in msg, msg
     assert "set camera_model to OPENCV_FISHEYE" in msg and "remove is_fisheye or set it to false" in msg
@@ -192,12 +202,8 @@ def test_a_fisheye_flag_on_a_perspective_model_names_the_conflict(tmp_path):
 
 def test_a_fisheye_model_marked_not_fisheye_names_the_conflict(tmp_path):
     root = write_capture(tmp_path / "d", "OPENCV_FISHEYE", {"k1": 0.05})
-    meta = json.loads((root / "transforms.json").read_text())
-    meta["frames"][2]["is_fisheye"] = False
-    (root / "transforms.json").write_text(json.dumps(meta))
-    with pytest.raises(DataError) as e:
-        load_scene(root, test_every=0)
-    msg = str(e.value)
+    meta = _edited(root, lambda m: m["frames"][2].update(is_fisheye=False))
+    msg = _refusal(root)
     assert ("frame 2 is marked is_fisheye: false (in the frame) but its camera_model is OPENCV_FISHEYE (at the top of "
             "the file), a fisheye model; the two disagree") in msg, msg
     assert "remove is_fisheye or set it to true" in msg and "set camera_model to OPENCV" in msg
