@@ -160,29 +160,30 @@ def test_a_file_from_before_free_directions_loads_with_the_fan(tmp_path):
     assert splatzoo.create_model("beta-gabor", torch.rand(2, 3), torch.rand(2, 3)).config.free_directions is True
 
 
-def test_wave_vectors_learn_at_ten_times_gabor_s_rate_and_old_files_keep_theirs(tmp_path):
-    """beta-gabor's wave vectors train at freq_lr = 1e-2 (gabor and gabor-adaptive keep 1e-3); a file written before
-    the option existed was trained at 1e-3 and loads so; a rate that is not one is refused by name."""
-    from splatzoo.models.base import ModelOptionError
-    from splatzoo.models.gabor import FREQ_LR
+def test_waves_learn_at_ten_times_gabor_s_rate_and_old_files_keep_theirs(tmp_path):
+    """beta-gabor's wave vectors and phases train at wave_lr = 1e-2 (gabor and gabor-adaptive keep 1e-3, and the
+    amplitudes theirs); a file written before the option existed was trained at 1e-3 and loads so; a rate that is not
+    one is refused by name."""
+    from splatzoo.models.gabor import WAVE_LR
 
-    def rate(model):
-        return {g["name"]: g["lr"] for g in model.optim_groups(1.0)}["wave_freqs"]
+    def rates(model):
+        return {g["name"]: g["lr"] for g in model.optim_groups(1.0) if g["name"].startswith("wave_")}
 
     pts, cols = torch.rand(20, 3), torch.rand(20, 3)
     model = splatzoo.create_model("beta-gabor", pts, cols)
-    assert model.config.freq_lr == rate(model) == 1e-2 == 10 * FREQ_LR
+    assert model.config.wave_lr == 1e-2 == 10 * WAVE_LR
+    assert rates(model) == {"wave_weights": 1e-3, "wave_freqs": 1e-2, "wave_phases": 1e-2}
     for name in ("gabor", "gabor-adaptive"):
-        assert rate(splatzoo.create_model(name, pts, cols)) == FREQ_LR == 1e-3
-    assert rate(splatzoo.create_model("beta-gabor", pts, cols, freq_lr=3e-3)) == 3e-3
+        assert set(rates(splatzoo.create_model(name, pts, cols)).values()) == {WAVE_LR} == {1e-3}
+    assert rates(splatzoo.create_model("beta-gabor", pts, cols, wave_lr=3e-3))["wave_phases"] == 3e-3
     path = tmp_path / "old.pt"
     splatzoo.save_model(model, path)
     ckpt = torch.load(path, weights_only=True)
-    del ckpt["config"]["freq_lr"]
+    del ckpt["config"]["wave_lr"]
     torch.save(ckpt, path)
-    assert rate(splatzoo.load_model(path)) == 1e-3
-    for bad, message in ((0, "freq_lr must be a learning rate in (0, 1], got 0"), (2.0, "in (0, 1], got 2.0"),
-                         (-1e-3, "in (0, 1], got -0.001"), (float("nan"), "freq_lr expects a finite float, got nan")):
-        with pytest.raises((ModelOptionError, ValueError)) as e:
-            splatzoo.create_model("beta-gabor", pts, cols, freq_lr=bad)
+    assert set(rates(splatzoo.load_model(path)).values()) == {1e-3}
+    for bad, message in ((0, "wave_lr must be a learning rate in (0, 1], got 0"), (2.0, "in (0, 1], got 2.0"),
+                         (-1e-3, "in (0, 1], got -0.001"), (float("nan"), "wave_lr expects a finite float, got nan")):
+        with pytest.raises((ValueError, TypeError)) as e:   # ShapeError, or ModelOptionError for a non-number
+            splatzoo.create_model("beta-gabor", pts, cols, wave_lr=bad)
         assert message in str(e.value), str(e.value)

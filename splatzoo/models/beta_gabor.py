@@ -6,8 +6,8 @@ sharper edges and fewer tiles touched) and waves only where the training views s
 surfel). Each wave carries its own RGB amplitude (color_param "per-wave") and learns its own direction
 (free_directions): stripes of several colours at any angle fit on one surfel, for 6 stored values a wave where a
 wave of the fixed fan with a colour difference shared by the surfel stores 3, plus 3 a waved surfel (BENCHMARKS.md,
-"Waves with a colour each"). The wave vectors learn at ten times gabor's rate (freq_lr), so that a short run
-reaches stripes several cycles a sigma from where they start ("Waves that learn their frequency ten times faster").
+"Waves with a colour each"). The wave vectors and phases learn at ten times gabor's rate (wave_lr), so that a
+short run reaches stripes several cycles a sigma from where they start ("Waves that learn ten times faster").
 Under a byte budget (TrainConfig.max_bytes, `compare --budgets`) it sheds, by
 measured cost, waves or its weakest surfels until it fits (training/budget.py).
 """
@@ -28,15 +28,15 @@ class BetaGaborConfig(AdaptiveGaborConfig):
     free_directions: bool = field(default=True, metadata={
         "help": "each wave learns its direction: a 2D wave vector (started on the fan of orientations) instead of a "
                 "frequency along a fixed orientation; --no-free-directions: the fan's fixed orientations"})
-    freq_lr: float = field(default=1e-2, metadata={
-        "help": "learning rate of the wave vectors (Adam; about the most one moves a step, in cycles per sigma): "
-                "10x gabor's, so that in a short run a wave reaches stripes several cycles a sigma from its start "
-                "in [0, 1) (BENCHMARKS.md, \"Waves that learn their frequency ten times faster\")"})
+    wave_lr: float = field(default=1e-2, metadata={
+        "help": "learning rate of the waves' vectors and phases (Adam; about the most one moves a step: cycles per "
+                "sigma, radians): 10x gabor's, so that in a short run a wave reaches stripes several cycles a sigma "
+                "from its start in [0, 1) and any phase (BENCHMARKS.md, \"Waves that learn ten times faster\")"})
 
     # beta-gabor files written before free directions existed store one frequency a wave along the fan, and those
-    # from before freq_lr were trained at gabor's rate
+    # from before wave_lr were trained at gabor's rate
     stored_defaults: ClassVar[dict] = {**AdaptiveGaborConfig.stored_defaults, "free_directions": False,
-                                       "freq_lr": 1e-3}
+                                       "wave_lr": 1e-3}
 
 
 class BetaGaborModel(BetaFalloff, GaborModel):

@@ -74,7 +74,7 @@ BISECTION_STEPS = 7    # prune_psnr: the share of waves removed is found to 1/2^
 # frequencies stop where every rasterizer still agrees (types.MAX_WAVE_NUMBER radians per sigma), in cycles per sigma;
 # float's products may round up
 FREQ_LIMIT = MAX_WAVE_NUMBER / (2 * math.pi) * (1 - 1e-5)
-FREQ_LR = 1e-3  # the wave frequencies' learning rate of gabor and gabor-adaptive (GaborConfig.freq_lr)
+WAVE_LR = 1e-3  # the learning rate of gabor's and gabor-adaptive's wave frequencies and phases (GaborConfig.wave_lr)
 
 
 @dataclass
@@ -119,9 +119,9 @@ class GaborConfig:
         "help": "adaptive waves (any --prune-* option): fraction of the iterations before the first pruning "
                 "(waves need time to grow; with densification on, pruning also waits until the last opacity reset "
                 "has recovered)"})
-    freq_lr: float = field(default=FREQ_LR, metadata={
-        "help": "learning rate of the wave frequencies (Adam; about the most a frequency moves a step, in cycles per "
-                "sigma): a wave must travel from its start in [0, 1) to the stripes it fits within the run"})
+    wave_lr: float = field(default=WAVE_LR, metadata={
+        "help": "learning rate of the waves' frequencies and phases (Adam; about the most one moves a step: cycles per "
+                "sigma, radians): a wave must travel from its start to the stripes it fits within the run"})
 
     # what a stored config written before an option existed meant: files from before `color_param` are "paper" models,
     # files from before the sparse-wave default trained without the penalty, and those from before
@@ -158,8 +158,8 @@ class GaborConfig:
                              f"(--color-param paper), or drop it: {self.color_param} has its own start")
         if not 0 <= float(self.prune_from) <= 1:
             raise ShapeError(f"prune_from is a fraction of the run in [0, 1], got {self.prune_from}")
-        if not 0 < float(self.freq_lr) <= 1:
-            raise ShapeError(f"freq_lr must be a learning rate in (0, 1], got {self.freq_lr}")
+        if not 0 < float(self.wave_lr) <= 1:
+            raise ShapeError(f"wave_lr must be a learning rate in (0, 1], got {self.wave_lr}")
 
 
 @dataclass
@@ -385,10 +385,10 @@ class GaborModel(SurfelModel):
                             {"name": "color_b", "params": [self.color_b], "lr": 2.5e-3}]
         groups = self.geometry_groups(scene_extent) + color_groups + [
             {"name": "wave_weights", "params": [self.wave_weights], "lr": 1e-3},
-            {"name": "wave_freqs", "params": [self.wave_freqs], "lr": float(self.config.freq_lr)},
+            {"name": "wave_freqs", "params": [self.wave_freqs], "lr": float(self.config.wave_lr)},
         ]
         if self.learn_phase:
-            groups.append({"name": "wave_phases", "params": [self.wave_phases], "lr": 1e-3})
+            groups.append({"name": "wave_phases", "params": [self.wave_phases], "lr": float(self.config.wave_lr)})
         if self.config.sh_degree > 0:
             groups.append({"name": "sh_rest", "params": [self.sh_rest], "lr": 2.5e-3 / 20})  # 2DGS's SH rest rate
         return groups
