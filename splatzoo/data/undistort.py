@@ -128,24 +128,22 @@ def remove_older_layout(root: Path, target: Path) -> int:
             return False
         return folder == target or str(marker.get("from")) in (str(root), str(root.resolve()))
 
+    def files(folder: Path) -> list[Path]:
+        return [p for p in folder.rglob("*") if p.is_file()] if folder.is_dir() else []
+
+    siblings = ([p for p in target.parent.iterdir() if p != target and p.is_dir()]
+                if target.parent != root and target.parent.is_dir() else [])  # the cache's other datasets
     removed = 0
-    candidates = [target] + ([p for p in target.parent.iterdir() if p != target and p.is_dir()]
-                             if target.parent != root and target.parent.is_dir() else [])
-    for folder in candidates:
-        if not made_by_older_layout(folder):
-            continue
+    for folder in filter(made_by_older_layout, [target] + siblings):
         if folder != target:   # a whole cache folder of the older layout
-            removed += sum(1 for p in folder.rglob("*") if p.is_file())
+            removed += len(files(folder))
             shutil.rmtree(folder, ignore_errors=True)
             continue
-        for sub in ("images", "masks", "sparse"):
-            for p in sorted((folder / sub).rglob("*")) if (folder / sub).is_dir() else []:
-                if p.is_file() and (sub == "sparse" or not STAMPED.fullmatch(p.name)):
-                    p.unlink(missing_ok=True)
-                    removed += 1
+        old = [p for sub in ("images", "masks") for p in files(folder / sub) if not STAMPED.fullmatch(p.name)]
+        for p in old + [folder / "source.json"]:
+            p.unlink(missing_ok=True)
+        removed += len(old) + 1 + len(files(folder / "sparse"))
         shutil.rmtree(folder / "sparse", ignore_errors=True)
-        (folder / "source.json").unlink(missing_ok=True)
-        removed += 1
     if removed:
         print(f"splatzoo: removed {removed} file(s) of an older undistorted copy of {root} (now kept photo by photo "
               f"in {target})", file=sys.stderr, flush=True)

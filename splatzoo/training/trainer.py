@@ -90,9 +90,9 @@ def check_start(scene, model: str, model_config, cfg, device: torch.device, init
 
 def check_byte_budget(scene, model: str, model_config, cfg) -> None:
     """Refuse a --max-bytes that cannot hold the file of one plain primitive: no shedding could meet it."""
-    options = dataclasses.asdict(model_config) if dataclasses.is_dataclass(model_config) else dict(model_config or {})
     # the file records the render settings: its size with either background the run may store
-    one = max(plain_stored_bytes(model, 1, cfg.store, RenderSettings(cfg.antialias, background), **options)
+    one = max(plain_stored_bytes(model, 1, cfg.store, RenderSettings(cfg.antialias, background),
+                                 **dataclasses.asdict(model_config))
               for background in (None, tuple(float(c) for c in scene.background)))
     if cfg.max_bytes < one:
         raise SplatzooError(f"--max-bytes {cfg.max_bytes:,} holds no {model} surfel: the file of one costs {one:,} "
