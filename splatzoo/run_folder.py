@@ -341,8 +341,14 @@ class Run:
         """The trained model; with a backend name ("auto" too) on the device that backend renders on."""
         if self.status != "finished":
             self.require_run()
-            hint = (" (training was interrupted: finish it with `splatzoo train --resume --out "
-                    f"{self.path}`)" if self.checkpoint_path.exists() else "")
+            if self.checkpoint_path.exists():
+                hint = f" (training was interrupted: finish it with `splatzoo train --resume --out {self.path}`)"
+            elif self.replaced_path.is_dir():  # settled by the next command that takes the lock (_settle_replaced)
+                hint = (f" (a run started with --overwrite stopped before its first checkpoint; the run it was to "
+                        f"replace is kept in {self.replaced_path} and comes back with the next command that writes "
+                        f"the folder, e.g. `splatzoo eval {self.path}`)")
+            else:
+                hint = ""
             raise SplatzooError(f"{self.path} has no trained model (model.pt){hint}")
         return open_model(self.model_path, backend=backend).model
 

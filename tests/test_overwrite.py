@@ -110,6 +110,11 @@ def test_a_killed_replacement_is_undone_by_the_next_command(run, tiny_data):
     old.set_aside()
     (run / "config.json").write_text("{}")  # what the new run had written
     assert (run / REPLACED_NAME).is_dir() and old.status == "started"
+    # a command that only reads (no lock) says where the old run is and how it comes back
+    r = runner.invoke(app, ["eval", str(run), "--out", str(run.parent / "m.json")])
+    assert isinstance(r.exception, SplatzooError), r.output
+    assert f"the run it was to replace is kept in {run / REPLACED_NAME}" in str(r.exception)
+    assert f"`splatzoo eval {run}`" in str(r.exception)
     with old.lock("splatzoo eval"):
         pass
     assert folder_digest(run) == before and old.status == "finished"
