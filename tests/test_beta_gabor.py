@@ -25,7 +25,8 @@ def beta_gabor(n=48, seed=0, color_param="residual"):
     d = torch.randn(n, 3, generator=g, dtype=torch.float64)
     free = color_param.endswith(", free directions")
     model = splatzoo.create_model("beta-gabor", d / d.norm(dim=1, keepdim=True), torch.rand(n, 3, generator=g),
-                                  color_param=color_param.split(",")[0], free_directions=free)
+                                  color_param=color_param.split(",")[0], free_directions=free,
+                                  fit_waves=0.3 if free else 0.0)
     model = model.double()
     with torch.no_grad():
         model.logit_opacity.fill_(0.5)
@@ -149,7 +150,8 @@ def test_extremes_render_finite_and_as_their_limits(extreme, color_param):
 def test_a_file_from_before_free_directions_loads_with_the_fan(tmp_path):
     """A beta-gabor file whose stored config has no free_directions (written before the option existed, when every
     wave had one frequency along the fan) loads as the fan, not as today's default."""
-    model = splatzoo.create_model("beta-gabor", torch.rand(20, 3), torch.rand(20, 3), free_directions=False)
+    model = splatzoo.create_model("beta-gabor", torch.rand(20, 3), torch.rand(20, 3), free_directions=False,
+                                  fit_waves=0)
     path = tmp_path / "old.pt"
     splatzoo.save_model(model, path)
     ckpt = torch.load(path, weights_only=True)

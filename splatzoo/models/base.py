@@ -314,6 +314,11 @@ class SplatModel(nn.Module):
         """A penalty the trainer adds to every view's loss (e.g. sparsity on the waves); None by default."""
         return None
 
+    def wave_fit_step(self, iterations: int) -> int | None:
+        """The iteration of a run of `iterations` after which the trainer fits the model's waves to the training photos
+        (training/wave_fit.py, through wave_slots and start_waves); None, by default: never."""
+        return None
+
     def on_step(self, step: int, train_config: Any, optimizer: torch.optim.Optimizer) -> dict | None:
         """Called by the trainer after every optimiser step (and after densification), with the run's TrainConfig.
         A model may edit itself here (e.g. drop unused waves); it must then keep `optimizer` pointing at its

@@ -7,7 +7,9 @@ surfel). Each wave carries its own RGB amplitude (color_param "per-wave") and le
 (free_directions): stripes of several colours at any angle fit on one surfel, for 6 stored values a wave where a
 wave of the fixed fan with a colour difference shared by the surfel stores 3, plus 3 a waved surfel (BENCHMARKS.md,
 "Waves with a colour each"). The wave vectors and phases learn at ten times gabor's rate (wave_lr), so that a
-short run reaches stripes several cycles a sigma from where they start ("Waves that learn ten times faster").
+short run reaches stripes several cycles a sigma from where they start ("Waves that learn ten times faster"), and at
+30% of the run every surfel's waves are fitted to the stripes the training photos show on its plane (fit_waves,
+training/wave_fit.py; "Waves fitted to the photos").
 Under a byte budget (TrainConfig.max_bytes, `compare --budgets`) it sheds, by
 measured cost, waves or its weakest surfels until it fits (training/budget.py).
 """
@@ -32,11 +34,14 @@ class BetaGaborConfig(AdaptiveGaborConfig):
         "help": "learning rate of the waves' vectors and phases (Adam; about the most one moves a step: cycles per "
                 "sigma, radians): 10x gabor's, so that in a short run a wave reaches stripes several cycles a sigma "
                 "from its start in [0, 1) and any phase (BENCHMARKS.md, \"Waves that learn ten times faster\")"})
+    fit_waves: float = field(default=0.3, metadata={
+        "help": "fraction of the run after which every surfel's waves are replaced by the stripes the training "
+                "photos show on its plane (training/wave_fit.py; the geometry has settled by then), 0: never"})
 
-    # beta-gabor files written before free directions existed store one frequency a wave along the fan, and those
-    # from before wave_lr were trained at gabor's rate
+    # beta-gabor files written before free directions existed store one frequency a wave along the fan, those from
+    # before wave_lr were trained at gabor's rate, and those from before fit_waves without a fit
     stored_defaults: ClassVar[dict] = {**AdaptiveGaborConfig.stored_defaults, "free_directions": False,
-                                       "wave_lr": 1e-3}
+                                       "wave_lr": 1e-3, "fit_waves": 0.0}
 
 
 class BetaGaborModel(BetaFalloff, GaborModel):

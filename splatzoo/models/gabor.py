@@ -1,7 +1,8 @@
 """3D Gabor surfels (the paper) and its ablation baselines A, B, C.
 
 Colour inside a surfel with N waves at fixed orientations theta_i,
-t_i = 2 pi f_i (cos theta_i, sin theta_i).(u,v) + phi_i (f in cycles per sigma), in one of two parametrisations (`color_param`):
+t_i = 2 pi f_i (cos theta_i, sin theta_i).(u,v) + phi_i (f in cycles per sigma), in one of two parametrisations
+(`color_param`):
 - "residual" (default): c(u,v) = c0 + sum_i w_i d cos t_i. The base colour c0 is a 2DGS surfel's colour and moves at
   2DGS's pace; the waves share one colour difference d and are a residual around c0. A surfel whose waves have died
   out is exactly a 2DGS surfel, so on plain colour gabor trains as 2DGS does.
@@ -45,10 +46,10 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from ..errors import ShapeError
+from ..errors import ShapeError, SplatzooError
 from ..geometry import SH_C0, eval_sh, num_sh_bases
 from ..types import MAX_WAVE_NUMBER, Camera, Surfels
-from .base import SurfelModel, view_directions
+from .base import SurfelModel, restart_moments, view_directions
 
 INIT_OFFSET = 0.05  # init="surfel": half the colour difference cA - cB, per channel, at most
 # color_param="residual": the base colour's rate is 2DGS's (2.5e-3 on its SH DC coefficient, in colour units x SH_C0)
@@ -122,6 +123,10 @@ class GaborConfig:
     wave_lr: float = field(default=WAVE_LR, metadata={
         "help": "learning rate of the waves' frequencies and phases (Adam; about the most one moves a step: cycles per "
                 "sigma, radians): a wave must travel from its start to the stripes it fits within the run"})
+    fit_waves: float = field(default=0.0, metadata={
+        "help": "fraction of the run after which every surfel's waves are replaced by the stripes the training "
+                "photos show on its plane (found by matching pursuit; training/wave_fit.py), 0: never; free "
+                "directions with color_param per-wave only"})
 
     # what a stored config written before an option existed meant: files from before `color_param` are "paper" models,
     # files from before the sparse-wave default trained without the penalty, and those from before
@@ -160,6 +165,12 @@ class GaborConfig:
             raise ShapeError(f"prune_from is a fraction of the run in [0, 1], got {self.prune_from}")
         if not 0 < float(self.wave_lr) <= 1:
             raise ShapeError(f"wave_lr must be a learning rate in (0, 1], got {self.wave_lr}")
+        if not 0 <= float(self.fit_waves) < 1:
+            raise ShapeError(f"fit_waves is a fraction of the run in [0, 1) (0: never), got {self.fit_waves}")
+        if float(self.fit_waves) > 0 and not (self.free_directions and self.color_param == "per-wave"):
+            raise ShapeError(f"fit_waves (here {self.fit_waves}) sets each wave's vector and colour, so it needs free "
+                             "directions (--free-directions) and a colour a wave (--color-param per-wave); for the "
+                             "fan or another colour form add --fit-waves 0")
 
 
 @dataclass
@@ -612,6 +623,35 @@ class GaborModel(SurfelModel):
         options.append(Shedding(f"{j} faintest waves", lambda camera: self._surfels_without(camera, removed, mean),
                                 lambda: self.prune_waves(0.0, optimizer, remove=removed)))
         return options
+
+    # --- waves fitted to the photos (fit_waves; training/wave_fit.py) ----------------------------------------------
+    def wave_fit_step(self, iterations: int) -> int | None:
+        fraction = float(self.config.fit_waves)
+        return None if fraction <= 0 else max(1, round(fraction * iterations))
+
+    def wave_slots(self) -> torch.Tensor:
+        """[N] the waves each surfel has."""
+        return self.active_slots().sum(1)
+
+    @torch.no_grad()
+    def start_waves(self, rows: torch.Tensor, vectors: torch.Tensor, phases: torch.Tensor, amplitudes: torch.Tensor,
+                    optimizer=None) -> None:
+        """Replace the waves of surfels `rows` by vectors [n,K,2] (cycles per sigma), phases [n,K] (radians) and RGB
+        amplitudes [n,K,3], a surfel's wave j by the j-th given (those past its own count, or past K, stay), and
+        restart their optimiser moments. Free directions with a colour a wave (beta-gabor) only: the fitted waves
+        are exactly these."""
+        if not (self.free_directions and self.per_wave and self.learn_phase):
+            raise SplatzooError(f"{type(self).__name__}: waves can be set from vectors, phases and amplitudes only "
+                                "with free directions and a colour a wave (color_param per-wave)")
+        k = min(vectors.shape[1], self.wave_weights.shape[1])
+        if rows.numel() == 0 or k == 0:
+            return
+        on = self.active_slots()[rows, :k]  # [n,k]
+        for p, value in ((self.wave_freqs, vectors[:, :k]), (self.wave_phases, phases[:, :k]),
+                         (self.wave_weights, amplitudes[:, :k])):
+            mask = on.reshape(on.shape + (1,) * (value.dim() - 2))
+            p.data[rows, :k] = torch.where(mask, value.to(p), p.data[rows, :k])
+            restart_moments(optimizer, p, rows)
 
     def summary(self) -> dict:
         n, k = self.wave_weights.shape[0], int(self.config.n_waves)

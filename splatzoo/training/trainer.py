@@ -21,7 +21,7 @@ from ..packing import PRECISIONS
 from ..types import Camera, RenderOutput
 from ..models.base import RenderSettings
 from ..zoo import create_model, model_from_checkpoint, plain_stored_bytes, stored_values
-from . import budget, frequency, mcmc
+from . import budget, frequency, mcmc, wave_fit
 from .densify import DensifyStats, densify_and_prune, reset_opacity
 from .distributed import Comm
 from .losses import distortion_loss, normal_consistency_loss, photometric_loss
@@ -387,6 +387,7 @@ class Trainer:
             self.budget = max(1, min(self.budget, int(budget.START * (cfg.max_bytes // max(per, 1.0)))))
         self._probe_views = None  # (camera, image) pairs of _probe_error, made on its first call
         self.shedding_steps = set(budget.shedding_steps(cfg.iterations)) if cfg.max_bytes else set()
+        self.wave_fit_step = self.net.wave_fit_step(cfg.iterations)
         self.net.probe_error = self._probe_error
 
     @classmethod
@@ -533,6 +534,20 @@ class Trainer:
                                       generator=self.gen, min_opacity=cfg.min_opacity, background=self.background,
                                       backend=self.backend, comm=self.comm)
 
+    def _fit_views(self) -> list:
+        """The training views (wave_fit.VIEWS at most, evenly spaced) at full size over the run's background."""
+        train = self.scene.train
+        picks = sorted({round(i * (len(train) - 1) / max(wave_fit.VIEWS - 1, 1))
+                        for i in range(min(wave_fit.VIEWS, len(train)))})
+        return [(train[i].camera.to(self.device, torch.float32),
+                 train[i].image_float(background=self.background.cpu()).to(self.device)) for i in picks]
+
+    def _fit_waves(self) -> dict:
+        """The model's waves fitted to the training photos (training/wave_fit.py): what was fitted, in how long."""
+        start = time.perf_counter()
+        fitted = wave_fit.fit_waves(self.net, self.optimizer, self._fit_views(), self.background, self.backend)
+        return {**fitted, "seconds": round(time.perf_counter() - start, 3)}
+
     def _next_views(self) -> list:
         """The next views_per_step training views of the run's own order (a new permutation whenever it runs out)."""
         views = []
@@ -587,6 +602,7 @@ class Trainer:
             if step % self.reset_every == 0:
                 reset_opacity(net, optimizer)
         net.on_step(step, cfg, optimizer)  # model-specific edits (e.g. adaptive waves); no-op by default
+        fitted = self._fit_waves() if step == self.wave_fit_step else None
         if cfg.max_bytes and step in self.shedding_steps:
             budget.enforce(net, optimizer, self._probe_error, cfg.max_bytes, cfg.store,
                            budget.share_due(step, cfg.iterations))
@@ -604,6 +620,8 @@ class Trainer:
                                    "train_psnr": -10 * math.log10(max(mse, 1e-10)),
                                    "num_primitives": net.num_primitives, "seconds": round(self.train_seconds, 3),
                                    **net.summary()})
+        if fitted is not None:
+            out["records"].append({"iteration": step, "wave_fit": fitted})
         if comm.rank == 0 and scene.test and (step % cfg.eval_interval == 0 or step == cfg.iterations):
             out["records"].append({"iteration": step, "test_psnr": test_psnr(net, scene, self.backend)})
         return out
