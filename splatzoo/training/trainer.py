@@ -53,9 +53,10 @@ def memory_estimate(model: str, model_config, primitives: int) -> int:
 def available_memory() -> int | None:
     """Bytes the system can give without swapping (MemAvailable), None where it cannot be read."""
     try:
-        for line in open("/proc/meminfo"):
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
+        with open("/proc/meminfo") as info:
+            for line in info:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
     return None
