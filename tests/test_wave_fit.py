@@ -206,3 +206,24 @@ def test_a_run_fits_once_at_its_fraction_and_never_with_fit_waves_0(tmp_path):
     assert 0 < fits[0]["wave_fit"]["surfels_fitted"] <= fits[0]["wave_fit"]["surfels"] == 60
     train(scene, "beta-gabor", {"fit_waves": 0.0}, cfg, tmp_path / "plain", progress=False)
     assert not any("wave_fit" in line for line in (tmp_path / "plain" / "train_log.jsonl").read_text().splitlines())
+
+
+def test_surfels_at_the_extremes_leave_every_parameter_finite():
+    """The largest and smallest scales, a surfel at a camera's centre, one edge-on to every view, and one behind them
+    all: the fit runs, and what it sets (or leaves) is finite."""
+    from splatzoo.types import MAX_SCALE
+
+    background = torch.full((3,), 0.5)
+    model = plane_model(n_side=3)
+    views = photos_of(plane_model(n_side=3), cameras(), background)
+    cam = views[2][0]
+    with torch.no_grad():
+        model.log_scales[0] = math.log(MAX_SCALE)
+        model.log_scales[1] = math.log(1e-9)
+        model.means[2] = cam.center.float()
+        model.quats[3] = normals_to_quats(torch.tensor([[1.0, 0.0, 0.0]]))[0]
+        model.means[4, 2] = -50.0
+    record = wave_fit.fit_waves(model, None, views, background, "cpu")
+    assert 0 < record["surfels_fitted"] < 9
+    for name, p in model.named_parameters():
+        assert torch.isfinite(p).all(), name
