@@ -6,10 +6,11 @@ the geometry has settled, every surfel's waves are replaced by the stripes the t
 
 1. samples: a GRID x GRID grid of points over the surfel's plane, u, v in [-RADIUS, RADIUS] sigmas (GRID grows with
    the surfel's largest size in pixels, so that the points are at most half a pixel apart: a large surfel's stripes
-   are resolved finely (a pixel apart fits worse: -0.19 dB at 5% on the quick sweater) and a small one costs little), is projected into each training view (at most VIEWS, evenly
-   spaced). A point counts in a view that sees the surfel there (the point's depth within DEPTH_TOLERANCE of the
-   view's rendered median depth) and faces its plane (|cos| of the view ray and the normal at least MIN_FACING),
-   weighted by that |cos|; its colour is the weighted mean of the photos' colours over the views.
+   are resolved finely, a pixel apart fits worse, -0.19 dB at 5% on the quick sweater, and a small surfel costs
+   little), is projected into each training view (at most VIEWS, evenly spaced). A point counts in a view that sees
+   the surfel there (the point's depth within DEPTH_TOLERANCE of the view's rendered median depth) and faces its
+   plane (|cos| of the view ray and the normal at least MIN_FACING), weighted by that |cos|; its colour is the
+   weighted mean of the photos' colours over the views.
 2. pursuit: the colours less their mean, windowed by a Gaussian of one sigma (the surfel's own falloff), are matched
    against waves on a grid of vectors STEP cycles per sigma apart, up to what the grid resolves. The wave of most
    energy is fitted (one phase for the three channels, an RGB amplitude by least squares), subtracted, and the next
