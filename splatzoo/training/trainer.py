@@ -501,9 +501,7 @@ class Trainer:
         cameras and images are prepared on the first call (a pruning makes several)."""
         if self._probe_views is None:
             train = self.scene.train
-            self._probe_views = [(v.camera.to(self.device, torch.float32),
-                                  v.image_float(background=self.background.cpu()).to(self.device))
-                                 for v in train[:: max(1, len(train) // PROBE_VIEWS)][:PROBE_VIEWS]]
+            self._probe_views = [self._full_size(v) for v in train[:: max(1, len(train) // PROBE_VIEWS)][:PROBE_VIEWS]]
         total = 0.0
         for cam, target in self._probe_views:
             rgb = self.net.render(cam, background=self.background, backend=self.backend,
@@ -529,8 +527,7 @@ class Trainer:
         if net.num_primitives >= self.budget:
             return {}
         picks = torch.randperm(len(train), generator=self.gen)[:min(cfg.densify_views, len(train))].tolist()
-        views = ((train[i].camera.to(self.device, torch.float32),
-                  train[i].image_float(background=self.background.cpu()).to(self.device)) for i in picks)
+        views = (self._full_size(train[i]) for i in picks)
         return frequency.densify_step(net, self.optimizer, views, scene_extent=self.scene.extent, budget=self.budget,
                                       generator=self.gen, min_opacity=cfg.min_opacity, background=self.background,
                                       backend=self.backend, comm=self.comm)
@@ -540,8 +537,12 @@ class Trainer:
         train = self.scene.train
         picks = sorted({round(i * (len(train) - 1) / max(wave_fit.VIEWS - 1, 1))
                         for i in range(min(wave_fit.VIEWS, len(train)))})
-        return [(train[i].camera.to(self.device, torch.float32),
-                 train[i].image_float(background=self.background.cpu()).to(self.device)) for i in picks]
+        return [self._full_size(train[i]) for i in picks]
+
+    def _full_size(self, view) -> tuple:
+        """(camera, photo) of a scene view at full size on the run's device, the photo over the run's background."""
+        return (view.camera.to(self.device, torch.float32),
+                view.image_float(background=self.background.cpu()).to(self.device))
 
     def _fit_waves(self) -> dict:
         """The model's waves fitted to the training photos (training/wave_fit.py): what was fitted, in how long."""
