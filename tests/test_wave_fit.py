@@ -143,12 +143,12 @@ def test_a_surfel_s_grid_resolves_half_a_pixel_up_to_the_largest():
     model = plane_model(n_side=2)
     with torch.no_grad():
         model.log_scales.copy_(torch.log(torch.tensor([1e-4, 0.08, 0.15, 10.0]))[:, None].expand(4, 2))
-    sizes = wave_fit.grid_sizes(model, cameras(1))
+    sizes = wave_fit.grid_sizes(model.geometry(), cameras(1))
     focal = float(cameras(1)[0].K[0, 0])
     assert sizes.tolist() == [8, 16, 32, 64], (sizes, focal)
     with torch.no_grad():
         model.means[:, 2] = -10.0  # behind the camera: nothing to resolve
-    assert wave_fit.grid_sizes(model, cameras(1)).tolist() == [8] * 4
+    assert wave_fit.grid_sizes(model.geometry(), cameras(1)).tolist() == [8] * 4
 
 
 def test_start_waves_sets_only_a_surfel_s_own_waves_and_needs_free_directions():

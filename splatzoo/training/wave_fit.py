@@ -39,15 +39,16 @@ MIN_COVER = 0.5         # a surfel is fitted when its counted points hold this s
 CHUNK_POINTS = 1 << 21  # grid points sampled and searched at once (a few hundred bytes each)
 
 
-def grid_sizes(net, cameras) -> torch.Tensor:
-    """[N] points a side for each surfel: its largest sigma in pixels over the views that have it in front, at most
-    half a pixel between points (the largest of GRIDS when even that is coarser)."""
-    g = net.geometry()
-    cameras = [cam.to(g["means"].device, g["means"].dtype) for cam in cameras]
-    sigma = g["scales"].detach().max(-1).values
+def grid_sizes(geometry: dict, cameras) -> torch.Tensor:
+    """[N] points a side for each surfel of `geometry` (SplatModel.geometry()): its largest sigma in pixels over the
+    views that have it in front, at most half a pixel between points (the largest of GRIDS when even that is
+    coarser)."""
+    means = geometry["means"].detach()
+    cameras = [cam.to(means.device, means.dtype) for cam in cameras]
+    sigma = geometry["scales"].detach().max(-1).values
     most = torch.zeros_like(sigma)
     for cam in cameras:
-        z = g["means"].detach() @ cam.R.T[:, 2] + cam.t[2]
+        z = means @ cam.R.T[:, 2] + cam.t[2]
         focal = torch.maximum(cam.K[0, 0], cam.K[1, 1])
         most = torch.maximum(most, torch.where(z > 0, focal * sigma / z.clamp_min(1e-12), torch.zeros_like(z)))
     needed = 2 * RADIUS * most / 0.5
@@ -56,11 +57,11 @@ def grid_sizes(net, cameras) -> torch.Tensor:
     return sizes[index]
 
 
-def plane_points(net, rows: torch.Tensor, grid: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(points [n,G,G,3] in world space, normals [n,3], u [G]) of surfels `rows`: u along columns, v along rows."""
-    g = net.geometry()
-    means, scales = g["means"].detach()[rows], g["scales"].detach()[rows]
-    R = quat_to_rotmat(g["quats"].detach()[rows])
+def plane_points(geometry: dict, rows: torch.Tensor, grid: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(points [n,G,G,3] in world space, normals [n,3], u [G]) of surfels `rows` of `geometry`: u along columns, v
+    along rows."""
+    means, scales = geometry["means"].detach()[rows], geometry["scales"].detach()[rows]
+    R = quat_to_rotmat(geometry["quats"].detach()[rows])
     u = ((torch.arange(grid, device=means.device, dtype=means.dtype) + 0.5) / grid * 2 - 1) * RADIUS
     tu, tv = R[..., 0] * scales[:, :1], R[..., 1] * scales[:, 1:]
     points = (means[:, None, None] + u[None, None, :, None] * tu[:, None, None]
@@ -141,21 +142,22 @@ def fit_waves(net, optimizer, views, background, backend: str) -> dict:
     """Replace every surfel's waves by those the photos show on its plane (module docstring). views: (camera,
     photo [H,W,3] over `background`) pairs (the trainer passes VIEWS at most). Returns {"surfels_fitted",
     "surfels"}."""
-    means = net.geometry()["means"].detach()
+    geometry = net.geometry()
+    means = geometry["means"].detach()
     views = [(cam.to(means.device, means.dtype), photo.to(means)) for cam, photo in views]
     depths = []
     for cam, _ in views:
         out = net.render(cam, background=background, backend=backend)
         depths.append(torch.where(out.median_depth > 0, out.median_depth, out.depth).detach())
     counts = net.wave_slots()
-    sizes = grid_sizes(net, [cam for cam, _ in views])
+    sizes = grid_sizes(geometry, [cam for cam, _ in views])
     fitted = torch.zeros(net.num_primitives, dtype=torch.bool, device=means.device)
     for grid in sizes.unique().tolist():
         rows_all = torch.nonzero((sizes == grid) & (counts > 0)).squeeze(1)
         per = max(1, CHUNK_POINTS // (grid * grid))
         for start in range(0, len(rows_all), per):
             rows = rows_all[start:start + per]
-            points, normals, u = plane_points(net, rows, grid)
+            points, normals, u = plane_points(geometry, rows, grid)
             colour, weight = sample_photos(points, normals, means[rows], views, depths)
             vectors, phases, amplitudes, cover = pursue(colour, weight > 0, u, int(counts[rows].max()))
             keep = cover >= MIN_COVER
