@@ -9,9 +9,8 @@ wave of the fixed fan with a colour difference shared by the surfel stores 3, pl
 "Waves with a colour each"). The wave vectors and phases learn at ten times gabor's rate (wave_lr), so that a
 short run reaches stripes several cycles a sigma from where they start ("Waves that learn ten times faster"), and at
 30% of the run every surfel's waves are fitted to the stripes the training photos show on its plane (fit_waves,
-training/wave_fit.py; "Waves fitted to the photos").
-Under a byte budget (TrainConfig.max_bytes, `compare --budgets`) it sheds, by
-measured cost, waves or its weakest surfels until it fits (training/budget.py).
+training/wave_fit.py; "Waves fitted to the photos"). Under a byte budget (TrainConfig.max_bytes, `compare
+--budgets`) it sheds, by measured cost, waves or its weakest surfels until it fits (training/budget.py).
 """
 from __future__ import annotations
 
