@@ -450,3 +450,26 @@ def test_densification_grows_to_twice_what_the_byte_budget_holds(tmp_path):
         assert budget.START == 2   # the same start as compare's budgeted runs
         assert trainer.budget == 2 * (600 // per) < Trainer.start(scene, name, make_config(name), TrainConfig(
             iterations=10, num_primitives=60), "cpu", torch.device("cpu")).budget, name
+
+
+def test_a_budgeted_run_starts_from_twice_what_fits_unless_told_a_count(tmp_path, capsys):
+    from splatzoo.data.synthetic import make_synthetic_scene
+    from splatzoo.data import load_scene
+    from splatzoo.training import TrainConfig, Trainer
+
+    scene = load_scene(make_synthetic_scene("sweater", tmp_path / "data", views=4, width=32, height=32))
+    points = scene.points.shape[0]
+    cpu = torch.device("cpu")
+    for name, per in (("2dgs", 16), ("beta-gabor", 18)):
+        start = 2 * (600 // per)
+        assert points > start
+        trainer = Trainer.start(scene, name, make_config(name), TrainConfig(iterations=10, max_bytes=600, store="8bit"),
+                                "cpu", cpu)
+        assert trainer.net.num_primitives == start == trainer.budget, name  # as compare --budgets starts its runs
+        assert f"--max-bytes 600: starting from {start:,} of the scene's {points:,} points" in capsys.readouterr().out
+        told = Trainer.start(scene, name, make_config(name), TrainConfig(
+            iterations=10, num_primitives=points, max_bytes=600, store="8bit"), "cpu", cpu)
+        assert told.net.num_primitives == points  # --num-primitives is kept: the run sheds from there
+        roomy = Trainer.start(scene, name, make_config(name), TrainConfig(iterations=10, max_bytes=10**7, store="8bit"),
+                              "cpu", cpu)
+        assert roomy.net.num_primitives == points and capsys.readouterr().out == ""

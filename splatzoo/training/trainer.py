@@ -5,7 +5,6 @@ splatzoo.runs (`splatzoo.runs.train`).
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import math
 import time
@@ -153,8 +152,9 @@ class TrainConfig:
     max_bytes: int | None = field(default=None, metadata={
         "help": "a byte budget: the model ends the run no larger than this, stored at --store (the size of its "
                 "packed file). From half-way on it sheds what costs the training views least: its weakest surfels "
-                "or, for beta-gabor and gabor-adaptive, its faintest waves (training/budget.py). Densification "
-                "grows it to twice the surfels that fit plain, to choose from"})
+                "or, for beta-gabor and gabor-adaptive, its faintest waves (training/budget.py). It starts from at "
+                "most twice the surfels that fit plain (the scene's points subsampled; --num-primitives overrides) "
+                "and densification grows it to no more, to choose from"})
     log_every: int = 10
 
     # what a stored record written before an option's default changed meant where it lacks the key: runs from
@@ -383,9 +383,7 @@ class Trainer:
         # from the scene and the config alone, so that a resumed run has the same budget
         self.budget = cfg.max_primitives or densify_budget(scene, cfg.num_primitives or scene.points.shape[0])
         if cfg.max_bytes:  # densification grows to budget.START times the surfels the byte budget holds plain
-            plain = copy.deepcopy(self.net).shed_richness().stored_row_bytes(cfg.store)
-            per = float(plain.mean()) if plain.numel() else 1.0
-            self.budget = max(1, min(self.budget, int(budget.START * (cfg.max_bytes // max(per, 1.0)))))
+            self.budget = min(self.budget, budget.start_count(self.net, cfg.max_bytes, cfg.store))
         self._probe_views = None  # (camera, image) pairs of _probe_error, made on its first call
         self.shedding_steps = set(budget.shedding_steps(cfg.iterations)) if cfg.max_bytes else set()
         self.wave_fit_step = self.net.wave_fit_step(cfg.iterations)
@@ -394,10 +392,23 @@ class Trainer:
     @classmethod
     def start(cls, scene, model: str, model_config, cfg: TrainConfig, backend: str, device,
               comm: Comm | None = None) -> "Trainer":
-        """A fresh run: the model initialised from the scene's points (chosen by the seed)."""
+        """A fresh run: the model initialised from the scene's points (chosen by the seed); under a byte budget without
+        --num-primitives, from no more of them than budget.start_count."""
         check_start(scene, model, model_config, cfg, device)
         pts, cols = select_initial_points(scene.points, scene.colors, cfg.num_primitives, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
+        if cfg.max_bytes and cfg.num_primitives is None:
+            # shedding from many times the budget strips a rich model's waves while surfels are plenty (beta-gabor on
+            # the fox at 25% of 2dgs's bytes: from all 11,849 points it kept no wave, 21.51 dB; from 1,782, 23.27;
+            # BENCHMARKS.md, "train --max-bytes starts from twice what fits")
+            count = budget.start_count(net, cfg.max_bytes, cfg.store)
+            if count < net.num_primitives:
+                if comm is None or comm.rank == 0:
+                    print(f"--max-bytes {cfg.max_bytes:,}: starting from {count:,} of the scene's "
+                          f"{net.num_primitives:,} points ({budget.START:g}x the {model} surfels the budget holds "
+                          "plain)", flush=True)
+                pts, cols = select_initial_points(scene.points, scene.colors, count, cfg.seed)
+                net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
         return cls(scene, net, cfg, backend, device, comm=comm)
 
     @classmethod
