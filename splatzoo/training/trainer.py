@@ -394,21 +394,20 @@ class Trainer:
               comm: Comm | None = None) -> "Trainer":
         """A fresh run: the model initialised from the scene's points (chosen by the seed); under a byte budget without
         --num-primitives, from no more of them than budget.start_count."""
-        check_start(scene, model, model_config, cfg, device)
-        pts, cols = select_initial_points(scene.points, scene.colors, cfg.num_primitives, cfg.seed)
-        net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
-        if cfg.max_bytes and cfg.num_primitives is None:
+        count, points = cfg.num_primitives, scene.points.shape[0]
+        if cfg.max_bytes and count is None and points:
             # shedding from many times the budget strips a rich model's waves while surfels are plenty (beta-gabor on
             # the fox at 25% of 2dgs's bytes: from all 11,849 points it kept no wave, 21.51 dB; from 1,782, 23.27;
             # BENCHMARKS.md, "train --max-bytes starts from twice what fits")
-            count = budget.start_count(net, cfg.max_bytes, cfg.store)
-            if count < net.num_primitives:
-                if comm is None or comm.rank == 0:
-                    print(f"--max-bytes {cfg.max_bytes:,}: starting from {count:,} of the scene's "
-                          f"{net.num_primitives:,} points ({budget.START:g}x the {model} surfels the budget holds "
-                          "plain)", flush=True)
-                pts, cols = select_initial_points(scene.points, scene.colors, count, cfg.seed)
-                net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
+            one = create_model(model, scene.points[:1], scene.colors[:1], **dataclasses.asdict(model_config))
+            count = budget.start_count(one, cfg.max_bytes, cfg.store)  # a row costs the same at any count
+            count = count if count < points else None
+        check_start(scene, model, model_config, cfg, device, initial=count)
+        if count is not None and cfg.num_primitives is None and (comm is None or comm.rank == 0):
+            print(f"--max-bytes {cfg.max_bytes:,}: starting from {count:,} of the scene's {points:,} points "
+                  f"({budget.START:g}x the {model} surfels the budget holds plain)", flush=True)
+        pts, cols = select_initial_points(scene.points, scene.colors, count, cfg.seed)
+        net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
         return cls(scene, net, cfg, backend, device, comm=comm)
 
     @classmethod
