@@ -475,8 +475,9 @@ _RANDOM_DOWNSCALE = typer.Option(0.0, "--random-downscale", help="fraction of tr
                                  "size against the area-averaged image (with --antialias)")
 _MAX_BYTES = typer.Option(None, "--max-bytes", callback=_size_arg, help="a byte budget for the stored model (200kB, "
                           "1.5MB): from half-way it sheds its weakest surfels or, for beta-gabor and gabor-adaptive, "
-                          "its faintest waves, whichever costs the training views least, until its file fits; "
-                          "densification first grows it to twice the surfels that fit")
+                          "its faintest waves, whichever costs the training views least, until its file fits. It "
+                          "starts from at most twice the surfels that fit (--num-primitives overrides), and "
+                          "densification grows it to no more")
 _INIT_FROM = typer.Option(None, "--init-from", metavar="FILE", callback=_path_arg, help="start from the surfels of a "
                           "model file (.ply from `splatzoo export` or another 2DGS/3DGS tool, or a .pt) instead of the "
                           "dataset's points; the model and its options are the file's")
