@@ -394,16 +394,17 @@ class Trainer:
               comm: Comm | None = None) -> "Trainer":
         """A fresh run: the model initialised from the scene's points (chosen by the seed); under a byte budget without
         --num-primitives, from no more of them than budget.start_count."""
-        count, points = cfg.num_primitives, scene.points.shape[0]
+        count, points, capped = cfg.num_primitives, scene.points.shape[0], False
         if cfg.max_bytes and count is None and points:
             # shedding from many times the budget strips a rich model's waves while surfels are plenty (beta-gabor on
             # the fox at 25% of 2dgs's bytes: from all 11,849 points it kept no wave, 21.51 dB; from 1,782, 23.27;
             # BENCHMARKS.md, "train --max-bytes starts from twice what fits")
             one = create_model(model, scene.points[:1], scene.colors[:1], **dataclasses.asdict(model_config))
-            count = budget.start_count(one, cfg.max_bytes, cfg.store)  # a row costs the same at any count
-            count = count if count < points else None
+            start = budget.start_count(one, cfg.max_bytes, cfg.store)  # a row costs the same at any count
+            capped = start < points
+            count = start if capped else None
         check_start(scene, model, model_config, cfg, device, initial=count)
-        if count is not None and cfg.num_primitives is None and (comm is None or comm.rank == 0):
+        if capped and (comm is None or comm.rank == 0):
             print(f"--max-bytes {cfg.max_bytes:,}: starting from {count:,} of the scene's {points:,} points "
                   f"({budget.START:g}x the {model} surfels the budget holds plain)", flush=True)
         pts, cols = select_initial_points(scene.points, scene.colors, count, cfg.seed)
