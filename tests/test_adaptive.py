@@ -164,6 +164,95 @@ def test_free_directions_prune_store_and_load_as_they_render(tmp_path, color_par
     assert torch.equal(render(splatzoo.load_model(tmp_path / "m.szp")).rgb, render(stored_copy(m, "8bit")).rgb)
 
 
+def counted_model(free: bool):
+    """A pruned per-wave model: ten surfels without waves, ten with one, the rest with more."""
+    m = adaptive_model(threshold=0.05, color_param="per-wave", free_directions=free)
+    with torch.no_grad():
+        m.wave_weights.fill_(0.3)
+        m.wave_freqs.fill_(0.5)  # a wave of 0.3 then varies the colour by 0.2 (RMS) over its surfel
+        m.wave_weights[:10] *= 0.001
+        m.wave_weights[10:20, 1:] *= 0.001
+        m.wave_weights[20:40, 2:] *= 0.001
+    m.prune_waves(0.05)
+    assert m.wave_counts.tolist() == [0] * 10 + [1] * 10 + [2] * 20 + [4] * (m.num_primitives - 40)
+    return m
+
+
+@pytest.mark.parametrize("free", [False, True])
+def test_wave_counts_are_stored_in_unary_bits_and_older_masks_still_load(tmp_path, free):
+    """A checkpoint stores each surfel's wave count in unary (that many ones, then a zero), so a wave-less surfel
+    adds one bit to a 2DGS surfel's bytes; only the fan adds each waved surfel's orientations as a bit mask. Files
+    written before, with a mask for every surfel, load as they did."""
+    m = counted_model(free)
+    counts = m.wave_counts
+    state = m.checkpoint()["state"]
+    code = state["wave_count_bits"]
+    assert code.dtype == torch.uint8 and code.numel() == math.ceil((m.num_primitives + int(counts.sum())) / 8)
+    assert ("wave_mask" in state) == (not free)
+    if not free:
+        assert state["wave_mask"].shape == (int(counts.gt(0).sum()),)
+    plain = m.stored_row_bytes("8bit")[:10]
+    assert torch.equal(plain, torch.full_like(plain, 16 + 1 / 8))  # 2DGS's 16 bytes and one bit
+    old = {k: v for k, v in state.items() if k != "wave_count_bits"}  # the layout before: a mask a surfel
+    index = m.wave_index.long()
+    old["wave_mask"] = torch.where(m.active_slots(), 1 << index, torch.zeros_like(index)).sum(1).to(torch.uint8)
+    old["wave_width"] = old["wave_width"].long()
+    torch.save({**m.checkpoint(), "state": old}, tmp_path / "old.pt")
+    splatzoo.save_model(m, tmp_path / "new.pt")
+    for name in ("old.pt", "new.pt"):
+        back = splatzoo.load_model(tmp_path / name)
+        assert torch.equal(back.wave_counts, counts), name
+        assert torch.equal(render(back).rgb, render(m).rgb), name
+
+
+def _one_wave_more(state):  # counts that give surfel 20 a wave the file does not hold
+    from splatzoo.models.gabor import unary_code, unary_counts
+
+    counts = unary_counts(state["wave_count_bits"], state["means"].shape[0], int(state["wave_width"]))
+    counts[20] += 1
+    return {**state, "wave_count_bits": unary_code(counts)}
+
+
+@pytest.mark.parametrize("free", [False, True])
+@pytest.mark.parametrize("damage, message", [
+    (lambda s: {**s, "wave_count_bits": s["wave_count_bits"][:-2]}, "holds counts for"),
+    (lambda s: {**s, "wave_count_bits": torch.cat([s["wave_count_bits"], torch.zeros(1, dtype=torch.uint8)])},
+     "runs on past the counts"),
+    (lambda s: {**s, "wave_count_bits": torch.full_like(s["wave_count_bits"], 255)}, "holds counts for 0 surfels"),
+    (lambda s: {**s, "wave_count_bits": s["wave_count_bits"].float()}, "1D uint8 tensor"),
+    (lambda s: {**s, "wave_count_bits": torch.full((3, 3), 7, dtype=torch.uint8)}, "1D uint8 tensor"),
+    (lambda s: {**s, "wave_width": torch.tensor(1, dtype=torch.uint8)}, "waves but wave_width is 1"),
+    (_one_wave_more, "values for the|other wave counts than"),  # the fan's masks see it first
+])
+def test_damaged_wave_counts_are_refused_by_name(tmp_path, free, damage, message):
+    m = counted_model(free)
+    ck = m.checkpoint()
+    torch.save({**ck, "state": damage(ck["state"])}, tmp_path / "bad.pt")
+    with pytest.raises(splatzoo.SplatzooError, match=message):
+        splatzoo.load_model(tmp_path / "bad.pt")
+
+
+@pytest.mark.parametrize("free", [False, True])
+def test_orientation_masks_must_match_the_counts(tmp_path, free):
+    """The fan's masks are one a waved surfel, each with as many bits as its count; free directions store none."""
+    m = counted_model(free)
+    ck = m.checkpoint()
+    state = dict(ck["state"])
+    if free:
+        state["wave_mask"] = torch.ones(int(m.wave_counts.gt(0).sum()), dtype=torch.uint8)
+        message = "stores wave counts, not orientations"
+    else:
+        state["wave_mask"] = state["wave_mask"].clone()
+        state["wave_mask"][-1] = 1  # one orientation where the counts give four
+        message = "other wave counts than wave_count_bits"
+        torch.save({**ck, "state": {**state, "wave_mask": state["wave_mask"][:-1]}}, tmp_path / "short.pt")
+        with pytest.raises(splatzoo.SplatzooError, match="one orientation mask for each of the"):
+            splatzoo.load_model(tmp_path / "short.pt")
+    torch.save({**ck, "state": state}, tmp_path / "bad.pt")
+    with pytest.raises(splatzoo.SplatzooError, match=message):
+        splatzoo.load_model(tmp_path / "bad.pt")
+
+
 @pytest.mark.parametrize("color_param", COLOR_PARAMS)
 def test_waveless_surfels_store_and_train_as_2dgs_surfels(tmp_path, color_param):
     base, diff, extra = COLOR_NAMES[color_param]

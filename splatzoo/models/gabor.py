@@ -30,7 +30,8 @@ Two options beyond the paper:
   row (`wave_index` keeps each slot's orientation) and `wave_counts` tells the rasterizer how many to evaluate. A surfel
   with no wave left becomes a 2DGS surfel: its colour is c0 (color_base; "paper": color_a alone) and d (color_diff;
   "paper": color_b and the folded weights) is zero and receives no gradient. Checkpoints store active waves only
-  (packed, with a per-surfel orientation bit mask) and, for wave-less surfels, only the base colour.
+  (packed: each surfel's wave count in unary bits, so a wave-less surfel adds one bit to a 2DGS surfel's bytes, and
+  for the fan each waved surfel's orientations as a bit mask) and, for wave-less surfels, only the base colour.
 - sh_degree > 0: a view-dependent spherical-harmonics term (degree >= 1 bands, no DC) added to the base colour.
 - free_directions: each wave learns its direction too: wave_freqs holds a 2D vector in cycles per sigma (the wave
   vector k / 2 pi), started along its slot's orientation, instead of a frequency along that fixed orientation. One
@@ -43,6 +44,7 @@ import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -195,7 +197,9 @@ class GaborModel(SurfelModel):
     orientation = "fan"   # "fan": theta_i = i pi / N; "u": every wave along the local u axis
     learn_phase = True
     primitive_buffers = ("wave_counts", "wave_index", "folded_weights")  # present only for adaptive waves
-    legacy_state_keys = ("folded_weight",)  # packed checkpoints of splatzoo 0.1.0 (_upgrade_single_fold)
+    # packed checkpoints of splatzoo 0.1.0 (_upgrade_single_fold), and files written before the unary wave counts
+    # (a bit mask for every surfel, free directions too)
+    legacy_state_keys = ("folded_weight", "wave_mask")
     # the PLY properties of the colours and waves (see SplatModel.ply_prefixes): gabor_weight_0, ...
     ply_prefixes = {
         "color_a": "gabor_color_a_", "color_b": "gabor_color_b_", "color_base": "gabor_color_base_",
@@ -578,18 +582,20 @@ class GaborModel(SurfelModel):
         return float(wave), float(waved)
 
     def stored_row_bytes(self, precision: str) -> torch.Tensor:
-        """Adaptive waves: a surfel's plain rows, its bit mask, its stored waves and (while it has one) its wave
-        colour."""
+        """Adaptive waves: a surfel's plain rows, its wave count (unary: one bit a wave and one more), its stored
+        waves and, while it has one, its wave colour and (the fan) its orientation mask."""
         if not self.adaptive:
             return super().stored_row_bytes(precision)
         from ..packing import value_bytes
 
         skip = set(self.wave_parameter_names) | set(self._waved_only) | set(self.primitive_buffers)
         plain = sum(t[:1].numel() * value_bytes(n, t, precision) for n, t in self.per_primitive().items()
-                    if n not in skip) + torch.empty((), dtype=self._mask_dtype()).element_size()
+                    if n not in skip)
         wave, waved = self._wave_bytes(precision)
+        if not self.free_directions:
+            waved += torch.empty((), dtype=self._mask_dtype()).element_size()
         counts = self.wave_counts.to(torch.float32)
-        return plain + counts * wave + (counts > 0).to(torch.float32) * waved
+        return plain + (counts + 1) / 8 + counts * wave + (counts > 0).to(torch.float32) * waved
 
     @torch.no_grad()
     def shed_free(self, optimizer=None) -> dict | None:
@@ -684,40 +690,37 @@ class GaborModel(SurfelModel):
         on = self.active_slots().cpu()
         for name in self.wave_parameter_names:
             state[name] = state[name][on]  # active waves only, row-major: surfel by surfel
-        waved = self.wave_counts.cpu() > 0
+        counts = self.wave_counts.cpu()
+        waved = counts > 0
         for name in self._waved_only:
             state[name] = state[name][waved]
-        index = self.wave_index.cpu().long()
-        mask = torch.where(on, torch.ones_like(index) << index, torch.zeros_like(index)).sum(1)
-        state["wave_mask"] = mask.to(self._mask_dtype())
-        state["wave_width"] = torch.tensor(int(self.wave_weights.shape[1]))
+        state["wave_count_bits"] = unary_code(counts)  # a plain surfel: one bit
+        if not self.free_directions:  # the fan: the orientations of each waved surfel's waves, as a bit mask
+            index = self.wave_index.cpu().long()
+            mask = torch.where(on, torch.ones_like(index) << index, torch.zeros_like(index)).sum(1)
+            state["wave_mask"] = mask[waved].to(self._mask_dtype())
+        state["wave_width"] = torch.tensor(int(self.wave_weights.shape[1]), dtype=torch.uint8)
         return ck
 
     def load_checkpoint_state(self, state: dict) -> None:
-        if not self.adaptive or "wave_mask" not in state:
+        if not self.adaptive or not {"wave_mask", "wave_count_bits"} & set(state):
             return super().load_checkpoint_state(state)
         if "folded_weight" in state and not self.residual:
             state = _upgrade_single_fold(state)
-        mask = state["wave_mask"].long()
-        n, k = mask.shape[0], int(self.config.n_waves)
+        k = int(self.config.n_waves)
         width = state.get("wave_width")
         if not (isinstance(width, torch.Tensor) and width.numel() == 1 and not width.is_floating_point()
                 and 0 <= int(width) <= k):  # it sizes the arrays below: a crafted count must not allocate gigabytes
             raise ShapeError(f"the packed waves' width (wave_width) must be a whole number in 0..n_waves={k}, got "
                              f"{str(width)[:80]}; the file is damaged: save the model again")
         width = int(width)
-        if mask.dim() != 1 or bool(((mask < 0) | (mask >= (1 << k))).any()):
-            raise ShapeError(f"wave_mask must be [N] with values in 0..2^{k}-1 (one bit per orientation); the file "
-                             "is damaged: save the model again")
-        bits = (mask[:, None] >> torch.arange(k)) & 1  # [N,K] orientation i in use
+        bits = self._orientation_bits(state, k, width)  # [N,K] orientation i in use
+        n = bits.shape[0]
         counts = bits.sum(1)
-        if n and int(counts.max()) > width:
-            raise ShapeError(f"wave_mask marks up to {int(counts.max())} waves on a surfel but wave_width is {width}; "
-                             "the file is damaged: save the model again")
         for name in self.wave_parameter_names:
             if tuple(state[name].shape[:1]) != (int(counts.sum()),):
                 raise ShapeError(f"{name} holds {tuple(state[name].shape)} values for the {int(counts.sum())} waves "
-                                 "wave_mask marks; the file is damaged: save the model again")
+                                 "the file's wave counts give; the file is damaged: save the model again")
         live = torch.arange(width)[None] < counts[:, None]
         index = torch.sort(1 - bits, dim=1, stable=True).indices[:, :width]  # set bits first, increasing
         index = torch.where(live, index, torch.zeros_like(index))
@@ -728,13 +731,76 @@ class GaborModel(SurfelModel):
         for name in self._waved_only:
             dense[name] = torch.zeros((n,) + tuple(state[name].shape[1:]), dtype=state[name].dtype)
             dense[name][counts > 0] = state[name]
-        rest = {k2: v for k2, v in state.items() if k2 not in dense and k2 not in ("wave_mask", "wave_width")}
+        layout = ("wave_mask", "wave_width", "wave_count_bits")
+        rest = {k2: v for k2, v in state.items() if k2 not in dense and k2 not in layout}
         self.replace_parameters({name: dense.get(name, rest.get(name)) for name, _ in self.named_parameters()})
         buffers = {"wave_counts": counts.to(torch.int32), "wave_index": index}
         if not self.residual:
             buffers["folded_weights"] = dense["folded_weights"]
         self.replace_parameters(buffers)
         self.load_state_dict({k2: v for k2, v in rest.items() if k2 not in dense}, strict=False)
+
+    def _orientation_bits(self, state: dict, k: int, width: int) -> torch.Tensor:
+        """[N,K] 0/1: which orientations (slots, for free directions) each surfel's stored waves have, from the
+        packed layout: unary wave counts (wave_count_bits) and, for the fan, a bit mask a waved surfel
+        (wave_mask); files written before the counts hold a mask for every surfel."""
+        fix = "the file is damaged: save the model again"
+        coded = None
+        if "wave_count_bits" in state:
+            means = state.get("means")
+            n = means.shape[0] if isinstance(means, torch.Tensor) and means.dim() else 0
+            coded = unary_counts(state["wave_count_bits"], n, width)
+            if self.free_directions:  # slots in use from the front: the count is all there is
+                if "wave_mask" in state:
+                    raise ShapeError(f"a model with free directions stores wave counts, not orientations (wave_mask); "
+                                     f"{fix}")
+                return (torch.arange(k)[None] < coded[:, None]).long()
+            mask, waved = state.get("wave_mask"), coded > 0
+            if not isinstance(mask, torch.Tensor) or mask.is_floating_point() or tuple(mask.shape) != (int(waved.sum()),):
+                raise ShapeError(f"wave_mask must hold one orientation mask for each of the {int(waved.sum())} "
+                                 f"surfels with waves; {fix}")
+            full = torch.zeros(n, dtype=torch.long)
+            full[waved] = mask.long()
+        else:
+            full = state["wave_mask"].long()
+        if full.dim() != 1 or bool(((full < 0) | (full >= (1 << k))).any()):
+            raise ShapeError(f"wave_mask must be [N] with values in 0..2^{k}-1 (one bit per orientation); {fix}")
+        bits = (full[:, None] >> torch.arange(k)) & 1
+        counts = bits.sum(1)
+        if coded is not None and bool((counts != coded).any()):
+            raise ShapeError(f"wave_mask marks other wave counts than wave_count_bits holds; {fix}")
+        if full.shape[0] and int(counts.max()) > width:
+            raise ShapeError(f"wave_mask marks up to {int(counts.max())} waves on a surfel but wave_width is {width}; "
+                             f"{fix}")
+        return bits
+
+
+def unary_code(counts: torch.Tensor) -> torch.Tensor:
+    """uint8 [ceil((N + sum counts) / 8)]: counts [N] (each >= 0) in unary, surfel after surfel (count ones, then a
+    zero), eight bits a byte, the last byte padded with zeros. A surfel without waves costs one bit."""
+    c = counts.detach().cpu().long().numpy()
+    bits = np.ones(int(c.sum()) + c.size, dtype=np.uint8)
+    bits[np.cumsum(c + 1) - 1] = 0
+    return torch.from_numpy(np.packbits(bits))
+
+
+def unary_counts(code: torch.Tensor, n: int, width: int) -> torch.Tensor:
+    """The N counts unary_code wrote (each at most `width`), checked: exactly N terminating zeros, then zero padding
+    to the byte."""
+    fix = "the file is damaged: save the model again"
+    if not isinstance(code, torch.Tensor) or code.dtype != torch.uint8 or code.dim() != 1:
+        raise ShapeError(f"wave_count_bits must be a 1D uint8 tensor of packed bits; {fix}")
+    bits = np.unpackbits(code.numpy())
+    ends = np.flatnonzero(bits == 0)[:n]
+    if ends.size < n:
+        raise ShapeError(f"wave_count_bits holds counts for {ends.size} surfels, not {n}; {fix}")
+    used = int(ends[-1]) + 1 if n else 0
+    if bits.size - used >= 8 or bits[used:].any():
+        raise ShapeError(f"wave_count_bits runs on past the counts of its {n} surfels; {fix}")
+    counts = torch.from_numpy(np.diff(ends, prepend=-1) - 1)
+    if n and int(counts.max()) > width:
+        raise ShapeError(f"wave_count_bits gives a surfel {int(counts.max())} waves but wave_width is {width}; {fix}")
+    return counts
 
 
 def _upgrade_single_fold(state: dict) -> dict:
