@@ -756,7 +756,8 @@ class GaborModel(SurfelModel):
                                      f"{fix}")
                 return (torch.arange(k)[None] < coded[:, None]).long()
             mask, waved = state.get("wave_mask"), coded > 0
-            if not isinstance(mask, torch.Tensor) or mask.is_floating_point() or tuple(mask.shape) != (int(waved.sum()),):
+            if (not isinstance(mask, torch.Tensor) or mask.is_floating_point()
+                    or tuple(mask.shape) != (int(waved.sum()),)):
                 raise ShapeError(f"wave_mask must hold one orientation mask for each of the {int(waved.sum())} "
                                  f"surfels with waves; {fix}")
             full = torch.zeros(n, dtype=torch.long)
