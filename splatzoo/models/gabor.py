@@ -77,6 +77,7 @@ BISECTION_STEPS = 7    # prune_psnr: the share of waves removed is found to 1/2^
 # frequencies stop where every rasterizer still agrees (types.MAX_WAVE_NUMBER radians per sigma), in cycles per sigma;
 # float's products may round up
 FREQ_LIMIT = MAX_WAVE_NUMBER / (2 * math.pi) * (1 - 1e-5)
+DAMAGED = "the file is damaged: save the model again"  # what a packed-wave layout's errors tell the user to do
 WAVE_LR = 1e-3  # the learning rate of gabor's and gabor-adaptive's wave frequencies and phases (GaborConfig.wave_lr)
 
 
@@ -712,7 +713,7 @@ class GaborModel(SurfelModel):
         if not (isinstance(width, torch.Tensor) and width.numel() == 1 and not width.is_floating_point()
                 and 0 <= int(width) <= k):  # it sizes the arrays below: a crafted count must not allocate gigabytes
             raise ShapeError(f"the packed waves' width (wave_width) must be a whole number in 0..n_waves={k}, got "
-                             f"{str(width)[:80]}; the file is damaged: save the model again")
+                             f"{str(width)[:80]}; {DAMAGED}")
         width = int(width)
         bits = self._orientation_bits(state, k, width)  # [N,K] orientation i in use
         n = bits.shape[0]
@@ -720,7 +721,7 @@ class GaborModel(SurfelModel):
         for name in self.wave_parameter_names:
             if tuple(state[name].shape[:1]) != (int(counts.sum()),):
                 raise ShapeError(f"{name} holds {tuple(state[name].shape)} values for the {int(counts.sum())} waves "
-                                 "the file's wave counts give; the file is damaged: save the model again")
+                                 f"the file's wave counts give; {DAMAGED}")
         live = torch.arange(width)[None] < counts[:, None]
         index = torch.sort(1 - bits, dim=1, stable=True).indices[:, :width]  # set bits first, increasing
         index = torch.where(live, index, torch.zeros_like(index))
@@ -744,7 +745,6 @@ class GaborModel(SurfelModel):
         """[N,K] 0/1: which orientations (slots, for free directions) each surfel's stored waves have, from the
         packed layout: unary wave counts (wave_count_bits) and, for the fan, a bit mask a waved surfel
         (wave_mask); files written before the counts hold a mask for every surfel."""
-        fix = "the file is damaged: save the model again"
         coded = None
         if "wave_count_bits" in state:
             means = state.get("means")
@@ -753,26 +753,26 @@ class GaborModel(SurfelModel):
             if self.free_directions:  # slots in use from the front: the count is all there is
                 if "wave_mask" in state:
                     raise ShapeError(f"a model with free directions stores wave counts, not orientations (wave_mask); "
-                                     f"{fix}")
+                                     f"{DAMAGED}")
                 return (torch.arange(k)[None] < coded[:, None]).long()
             mask, waved = state.get("wave_mask"), coded > 0
             if (not isinstance(mask, torch.Tensor) or mask.is_floating_point()
                     or tuple(mask.shape) != (int(waved.sum()),)):
                 raise ShapeError(f"wave_mask must hold one orientation mask for each of the {int(waved.sum())} "
-                                 f"surfels with waves; {fix}")
+                                 f"surfels with waves; {DAMAGED}")
             full = torch.zeros(n, dtype=torch.long)
             full[waved] = mask.long()
         else:
             full = state["wave_mask"].long()
         if full.dim() != 1 or bool(((full < 0) | (full >= (1 << k))).any()):
-            raise ShapeError(f"wave_mask must be [N] with values in 0..2^{k}-1 (one bit per orientation); {fix}")
+            raise ShapeError(f"wave_mask must be [N] with values in 0..2^{k}-1 (one bit per orientation); {DAMAGED}")
         bits = (full[:, None] >> torch.arange(k)) & 1
         counts = bits.sum(1)
         if coded is not None and bool((counts != coded).any()):
-            raise ShapeError(f"wave_mask marks other wave counts than wave_count_bits holds; {fix}")
+            raise ShapeError(f"wave_mask marks other wave counts than wave_count_bits holds; {DAMAGED}")
         if full.shape[0] and int(counts.max()) > width:
             raise ShapeError(f"wave_mask marks up to {int(counts.max())} waves on a surfel but wave_width is {width}; "
-                             f"{fix}")
+                             f"{DAMAGED}")
         return bits
 
 
@@ -788,19 +788,19 @@ def unary_code(counts: torch.Tensor) -> torch.Tensor:
 def unary_counts(code: torch.Tensor, n: int, width: int) -> torch.Tensor:
     """The N counts unary_code wrote (each at most `width`), checked: exactly N terminating zeros, then zero padding
     to the byte."""
-    fix = "the file is damaged: save the model again"
     if not isinstance(code, torch.Tensor) or code.dtype != torch.uint8 or code.dim() != 1:
-        raise ShapeError(f"wave_count_bits must be a 1D uint8 tensor of packed bits; {fix}")
+        raise ShapeError(f"wave_count_bits must be a 1D uint8 tensor of packed bits; {DAMAGED}")
     bits = np.unpackbits(code.numpy())
     ends = np.flatnonzero(bits == 0)[:n]
     if ends.size < n:
-        raise ShapeError(f"wave_count_bits holds counts for {ends.size} surfels, not {n}; {fix}")
+        raise ShapeError(f"wave_count_bits holds counts for {ends.size} surfels, not {n}; {DAMAGED}")
     used = int(ends[-1]) + 1 if n else 0
     if bits.size - used >= 8 or bits[used:].any():
-        raise ShapeError(f"wave_count_bits runs on past the counts of its {n} surfels; {fix}")
+        raise ShapeError(f"wave_count_bits runs on past the counts of its {n} surfels; {DAMAGED}")
     counts = torch.from_numpy(np.diff(ends, prepend=-1) - 1)
     if n and int(counts.max()) > width:
-        raise ShapeError(f"wave_count_bits gives a surfel {int(counts.max())} waves but wave_width is {width}; {fix}")
+        raise ShapeError(f"wave_count_bits gives a surfel {int(counts.max())} waves but wave_width is {width}; "
+                         f"{DAMAGED}")
     return counts
 
 
