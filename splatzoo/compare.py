@@ -356,16 +356,12 @@ def too_small(choice: ModelChoice, text: str, budget: int, store: str, like=None
 
 
 def budget_count(choice: ModelChoice, budget: int, store: str, like=None) -> int:
-    """The most primitives of `choice` whose packed file at `store` fits in `budget` bytes (0 if not one)."""
-    one = stored_cost(choice, 1, store, like)
-    per = max(1, (stored_cost(choice, 1001, store, like) - one) // 1000)
-    n = max(0, (budget - one) // per + 1)
-    # the compressed header changes by a few bytes with n: settle on the exact count
-    while n > 0 and stored_cost(choice, n, store, like) > budget:
-        n -= 1
-    while stored_cost(choice, n + 1, store, like) <= budget:
-        n += 1
-    return n
+    """The most primitives of `choice` whose packed file at `store` fits in `budget` bytes (0 if not one), with the
+    render settings of the model `like`."""
+    from .zoo import plain_fit_count
+
+    return plain_fit_count(choice.model, budget, store, like.render_settings if like is not None else None,
+                           **choice.options)
 
 
 def stored_size_of(metrics: dict, run: Run, store: str) -> int:

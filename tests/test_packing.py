@@ -110,7 +110,7 @@ def test_training_through_stored_values_restores_and_differentiates():
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)
-@pytest.mark.parametrize("name", ["2dgs", "gabor", "neural-gabor", "textured"])
+@pytest.mark.parametrize("name", ["2dgs", "gabor", "neural-gabor", "textured", "beta-gabor"])
 def test_budget_count_never_exceeds_the_budget(name, precision):
     choice = ModelChoice(name, name)
     for budget in (3_000, 20_000, 104_000):
@@ -118,6 +118,19 @@ def test_budget_count_never_exceeds_the_budget(name, precision):
         assert n >= 1
         assert stored_cost(choice, n, precision) <= budget < stored_cost(choice, n + 1, precision)
     assert budget_count(choice, 10, precision) == 0
+
+
+def test_a_large_budget_is_fitted_without_building_a_model_that_large():
+    from splatzoo.zoo import EXACT_FIT_UP_TO, plain_fit_count, plain_stored_bytes
+
+    one = plain_stored_bytes("2dgs", 1, "8bit")
+    budget = 200_000_000  # twelve million 8-bit 2dgs rows: estimated from the cost of a row, not settled by building
+    n = plain_fit_count("2dgs", budget, "8bit")
+    assert n > EXACT_FIT_UP_TO and abs(n - (1 + (budget - one) / 16)) <= 2  # the header writes more digits
+    # beta-gabor's plain row stores a bit of wave count: a fraction of a byte that the estimate keeps
+    one = plain_stored_bytes("beta-gabor", 1, "8bit")
+    n = budget_count(ModelChoice("beta-gabor", "beta-gabor"), budget, "8bit")
+    assert abs(n - (1 + (budget - one) / 17.125)) <= 2
 
 
 def test_parse_budgets():
