@@ -187,7 +187,7 @@ def test_gradcheck_including_the_means(native_backend, kernel):
     s, cam = sphere_and_wall(6, 12, 10, 2, seed=3, dtype=D, px_sigma=(0.5, 3.0))
     s = s.to(native_backend.torch_device())
     s.opacities.fill_(0.6)
-    s.means[:, 2] += 0.01 * torch.arange(6, dtype=D)  # no two at one depth: a tie's order flips under a step
+    s.means[:, 2] += 0.01 * torch.arange(6, dtype=D, device=s.means.device)  # no two at one depth: a tie's order flips under a step
     if kernel == "beta":
         s.falloff = torch.tensor([0.02, 0.3, 1e-3, 0.9, 0.1, 0.5], dtype=D, device=s.means.device)
     fixed = {"falloff": s.falloff} if kernel == "gaussian" else {}

@@ -127,17 +127,26 @@ def test_the_extension_takes_the_fields_of_the_table():
         native._check_fields(Stale)
 
 
-@pytest.mark.parametrize("name", [f.name for f in SURFEL_FIELDS])
-def test_the_extension_checks_every_field_by_name(name):
-    """Below Surfels.validate, the bindings check each field's shape from the table and name it."""
-    s, cam = random_scene(10, 16, 16, 2, seed=1)
-    C = native.load("cpu")
-    tensors = s.tensors()
-    tensors[name] = tensors[name][:-1] if name != "means" else tensors[name][:, :2]
+def _bindings(backend, cam: Camera):
+    """The extension a native backend calls, with its device, its `emulated` flag and `cam` as the bindings take it
+    (KR, Kt and the eye, float32 on that device)."""
+    C = native.load("cuda" if backend.name == "cuda" else "cpu")
+    dev = backend.torch_device()
     cam = cam.to("cpu", torch.float64)
-    KR, Kt, eye = (cam.K @ cam.R).float(), (cam.K @ cam.t).float(), cam.center.float()
+    KR, Kt, eye = ((cam.K @ cam.R).float().to(dev), (cam.K @ cam.t).float().to(dev), cam.center.float().to(dev))
+    return C, dev, backend.name == "cuda-emulated", (KR, Kt, eye)
+
+
+@pytest.mark.parametrize("name", [f.name for f in SURFEL_FIELDS])
+def test_the_extension_checks_every_field_by_name(native_backend, name):
+    """Below Surfels.validate, the bindings check each field's shape from the table and name it (every build: an
+    error raised in the extension must reach Python as an exception, not end the process)."""
+    s, cam = random_scene(10, 16, 16, 2, seed=1)
+    C, dev, emulated, camera = _bindings(native_backend, cam)
+    tensors = {k: t.to(dev) for k, t in s.tensors().items()}
+    tensors[name] = tensors[name][:-1] if name != "means" else tensors[name][:, :2]
     with pytest.raises(RuntimeError, match=name):
-        C.render(native.settings_struct(C, SETTINGS), list(tensors.values()), None, KR, Kt, eye, 16, 16, False)
+        C.render(native.settings_struct(C, SETTINGS), list(tensors.values()), None, *camera, 16, 16, emulated)
 
 
 def test_bad_settings_are_refused():
@@ -674,16 +683,22 @@ def test_the_build_cache_is_keyed_by_the_compiler_and_ninja(monkeypatch):
     assert native._build_name("cpu") not in (a, b)
 
 
+def _too_large_camera() -> Camera:
+    return Camera.look_at((0.0, 0.0, -1e6), (0.0, 0.0, 0.0), width=1 << 20, height=1 << 20, dtype=torch.float32)
+
+
 def test_a_camera_too_large_to_index_is_refused_not_a_crash(any_backend):
     """A 2^20 x 2^20 camera (a hostile viewer client's, say) overflowed the 32-bit tile count in the binning and
     crashed the process; every backend refuses it by name, before allocating."""
-    s, cam = random_scene(50, 16, 16, 2, seed=3)
-    far = Camera.look_at((0.0, 0.0, -1e6), (0.0, 0.0, 0.0), width=1 << 20, height=1 << 20, dtype=torch.float32)
+    s, _ = random_scene(50, 16, 16, 2, seed=3)
     with pytest.raises(ShapeError, match="pixels per image"):
-        rasterize(s, far, backend=any_backend)
-    C = native.load("cpu")  # the bindings check too, for callers below rasterize()
-    cam64 = far.to("cpu", torch.float64)
-    KR, Kt, eye = (cam64.K @ cam64.R).float(), (cam64.K @ cam64.t).float(), cam64.center.float()
+        rasterize(s, _too_large_camera(), backend=any_backend)
+
+
+def test_the_bindings_refuse_a_camera_too_large_to_index(native_backend):
+    """The bindings check the image size too, for callers below rasterize()."""
+    s, _ = random_scene(50, 16, 16, 2, seed=3)
+    C, dev, emulated, camera = _bindings(native_backend, _too_large_camera())
+    fields = [t.to(dev) for t in s.tensors().values()]
     with pytest.raises(RuntimeError, match="2\\^31 - 1 pixels"):
-        C.render(native.settings_struct(C, SETTINGS), list(s.tensors().values()), None, KR, Kt, eye, 1 << 20, 1 << 20,
-                 False)
+        C.render(native.settings_struct(C, SETTINGS), fields, None, *camera, 1 << 20, 1 << 20, emulated)
