@@ -4,7 +4,8 @@ A model's checkpoint (SplatModel.checkpoint(): name, config, render settings, an
 adaptive waves packed surfel by surfel) is written tensor by tensor in one of these precisions:
 
 - `float32`: every value as trained;
-- `float16`: positions as 16-bit fixed point over each axis's range, every other float value as a half float;
+- `float16`: positions as 16-bit fixed point over each axis's range, every other float value as a half float (a
+  tensor with a value beyond a half float's range as it is);
 - `8bit`: positions as 16-bit fixed point over each axis's range, every other float value as an 8-bit code over its
   column's range (one float32 minimum and step per column, as SPZ and SOG store colours and scales).
 
@@ -43,6 +44,7 @@ SUFFIX = ".szp"
 PRECISIONS = ("float32", "float16", "8bit")
 POSITION_FIELDS = ("means",)  # stored at 16 bits in the reduced precisions: a step of 1/65535 of the scene's span
 MAX_HEADER = 1 << 24
+F16_MAX = float(np.finfo(np.float16).max)
 
 # the dtypes a stored tensor may have (by name), and the fixed-point codes (numpy dtype, bits)
 _DTYPES = {"float32": np.float32, "float64": np.float64, "float16": np.float16, "int64": np.int64,
@@ -65,12 +67,15 @@ def check_precision(precision: str) -> str:
 
 
 def encoding_for(name: str, tensor: torch.Tensor, precision: str) -> str:
-    """How tensor `name` is stored at `precision`: raw, f16, u8 or u16."""
+    """How tensor `name` is stored at `precision`: raw, f16, u8 or u16. At float16 a tensor with a value beyond a
+    half float's range (65504) stays raw: as a half float it would load back as infinity."""
     if precision == "float32" or not tensor.is_floating_point() or tensor.dim() == 0 or tensor.numel() == 0:
         return "raw"
     if name in POSITION_FIELDS:
         return "u16"
-    return "f16" if precision == "float16" else "u8"
+    if precision == "float16":
+        return "f16" if float(tensor.detach().abs().max()) <= F16_MAX else "raw"
+    return "u8"
 
 
 def value_bytes(name: str, tensor: torch.Tensor, precision: str) -> int:

@@ -117,6 +117,9 @@ def plain_fit_count(name: str, budget: int, precision: str, render_settings=None
     # a row's exact cost, a fraction of a byte where rows store bits (beta-gabor's 17.125 at 8 bits): from whole bytes
     # the estimate starts high by a row in 137 and settles down one model build at a time (500 kB: 23 s)
     per = float(like.stored_row_bytes(precision).mean())
+    if per <= 0:  # a plugin whose primitives store nothing per row: no budget bounds its count
+        raise SplatzooError(f"{name}: its primitives store no bytes of their own at {precision}, so a size budget "
+                            "cannot choose how many to train; give the count (--num-primitives) instead")
     n = max(0, 1000 + math.floor((budget - stored_bytes(like, precision)) / per))
     if n > EXACT_FIT_UP_TO:
         return n

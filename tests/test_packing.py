@@ -94,6 +94,32 @@ def test_quantisation_error_is_within_half_a_step():
     assert torch.equal(quantise_tensor("sh_dc", const, "8bit"), const)
 
 
+def test_a_value_beyond_the_half_float_range_is_stored_as_it_is(tmp_path):
+    """At float16 a tensor holding a value a half float cannot (65504 and beyond) is stored at full precision, not
+    as infinity; the others are still half floats, and the file's size says so."""
+    model = trained_looking("2dgs")
+    name, param = next((k, p) for k, p in model.named_parameters() if k != "means")
+    with torch.no_grad():
+        param.view(-1)[0] = 7e4
+    model.precision = "float16"
+    path = tmp_path / "m.szp"
+    save_model(model, path)
+    back = load_model(path).state_dict()
+    assert torch.equal(back[name], model.state_dict()[name]) and torch.isfinite(back[name]).all()
+    others = [k for k in back if k not in (name, "means") and back[k].is_floating_point()]
+    assert others and all(torch.equal(back[k], model.state_dict()[k].half().float()) for k in others)
+    assert path.stat().st_size == stored_bytes(model, "float16")
+
+
+def test_a_budget_is_refused_for_primitives_that_store_nothing(monkeypatch):
+    from splatzoo.zoo import plain_fit_count, plain_model
+
+    monkeypatch.setattr(type(plain_model("2dgs", 1)), "stored_row_bytes",
+                        lambda self, precision: torch.zeros(self.num_primitives))
+    with pytest.raises(SplatzooError, match="--num-primitives"):
+        plain_fit_count("2dgs", 1_000_000, "8bit")
+
+
 def test_training_through_stored_values_restores_and_differentiates():
     model = trained_looking("gabor")
     before = {k: v.clone() for k, v in model.state_dict().items()}
