@@ -763,8 +763,9 @@ def compare_command(
                                           "table"),
     budget_start: Optional[float] = typer.Option(None, "--budget-start", help="with --budgets: each budgeted run "
                                                  "starts with this many times the primitives that fit its budget "
-                                                 "(default 2) and sheds those that cost its views least down to it "
-                                                 "from half-way (1: start with what fits)"),
+                                                 "(default: each model's own, 3 for 2dgs and beta, 2 for the others) "
+                                                 "and sheds those that cost its views least down to it from half-way "
+                                                 "(1: start with what fits)"),
     store: str = _STORE,
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other "

@@ -15,7 +15,6 @@ from .figures import metric, pyplot, save_figure
 from .io import write_json, write_text
 from .runs import Run, differences, evaluate_run, made_by_other_code, make_record, train
 from .training import TrainConfig
-from .training.budget import START as BUDGET_START  # each budgeted run starts with this many times what fits
 
 
 @dataclass
@@ -102,15 +101,16 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
 
     `budgets` (rate-distortion curves): a list of sizes, each a fraction of the first model's stored size at its
     count ('25%', 0.25) or a size in bytes ('200kB', '1.5MB', 200000). The first model is trained at its count,
-    then every model at every budget, starting with `budget_start` times as many primitives as its packed file can
-    hold within it (budget_count) and shedding down to the budget from half-way (training/budget.py), in
+    then every model at every budget, starting with `budget_start` (None: each model's own, SplatModel.budget_start)
+    times as many primitives as its packed file can hold within it (budget_count) and shedding down to the budget
+    from half-way (training/budget.py), in
     out/runs/<label>@<count>; rate.png and the report's rate table plot PSNR, LPIPS and FPS against stored bytes.
     `store`: the precision every model is stored (and fine-tuned) at (packing.PRECISIONS)."""
     from .data import load_scene
 
     choices, model_configs = _checked_choices(models)
-    budget_start = BUDGET_START if budget_start is None else budget_start
-    if not (isinstance(budget_start, (int, float)) and math.isfinite(budget_start) and 1 <= budget_start <= 16):
+    if budget_start is not None and not (isinstance(budget_start, (int, float)) and math.isfinite(budget_start)
+                                         and 1 <= budget_start <= 16):
         raise SplatzooError(f"--budget-start must be a number from 1 to 16 (how many times the primitives that fit "
                             f"a budget each budgeted run starts with), got {budget_start}")
     if strategy != "auto" and not densify:
@@ -141,15 +141,16 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         if run.status == "foreign":
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
     runs, counts = _train_all(runner, choices, num_primitives, equal_bytes=equal_bytes, budgets=bool(sizes))
+    starts = {c.label: budget_start or member_budget_start(c) for c in choices}
     rate = rate_curves(choices, sizes, scene, out, store, runs, runner.folders, runner.plan,
-                       runner.train_or_reuse, budget_start) if sizes else []
+                       runner.train_or_reuse, starts) if sizes else []
     settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
                 "num_primitives": num_primitives, "densify": densify, "strategy": strategy, "seed": seed,
                 "backend": runs[choices[0].label].get("backend", backend), "scene_options": scene_options,
                 "models": [c.label for c in choices], "equal_bytes": equal_bytes, "antialias": antialias,
                 "random_downscale": random_downscale, "primitives": counts, "trained_by_other_code": runner.other_code,
                 "train_views": len(scene.train), "test_views": len(scene.test), "store": store,
-                "budgets": [text for text, _, _ in sizes], "budget_start": budget_start if sizes else None}
+                "budgets": [text for text, _, _ in sizes], "budget_start": starts if sizes else None}
     return _write_report(out, scene, {"runs": runs, "settings": settings}, rate, runner.folders)
 
 
@@ -264,11 +265,19 @@ def _write_report(out: Path, scene, report: dict, rate: list, folders: dict) -> 
     return report
 
 
+def member_budget_start(choice: ModelChoice) -> float:
+    """How many times the primitives that fit a budget a budgeted run of `choice` starts with, by default: its
+    model's own (SplatModel.budget_start)."""
+    from .registry import MODELS
+
+    return float(MODELS.get(choice.model).cls.budget_start)
+
+
 def rate_curves(choices, sizes, scene, out: Path, store: str, runs: dict, run_dirs: dict, plan, train_or_reuse,
-                budget_start: float) -> list:
+                starts: dict) -> list:
     """compare --budgets: every model at every budget (the first model's run at its count, in `runs`, sets the
     fractions), each run planned (and refused, if it must be) before any trains; one record per (budget, model).
-    Each starts with `budget_start` times the primitives that fit (BUDGET_START)."""
+    Each starts with starts[label] times the primitives that fit."""
     first = choices[0]
     reference = stored_size_of(runs[first.label], run_dirs[first.label], store)
     reference_count = run_dirs[first.label].record()["train"]["num_primitives"] or scene.points.shape[0]
@@ -280,7 +289,7 @@ def rate_curves(choices, sizes, scene, out: Path, store: str, runs: dict, run_di
             fit = budget_count(c, target, store, like)  # a model that sheds richness: as many as fit plain
             if fit < 1:
                 raise too_small(c, text, target, store, like)
-            count = math.ceil(budget_start * fit)
+            count = math.ceil(starts[c.label] * fit)
             same = c is first and count == reference_count <= fit  # the reference run fits as it is
             run = run_dirs[c.label] if same else Run(out / "runs" / f"{_safe(c.label)}@{count}")
             planned_runs.append((text, target, c, fit, count, run,
@@ -455,14 +464,23 @@ def report_markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
-def rate_markdown(rate: list[dict], store: str, budget_start: float | None = None) -> list[str]:
+def rate_markdown(rate: list[dict], store: str, budget_start: dict | float | None = None) -> list[str]:
     """The rate table: each budget a row, each model its PSNR / LPIPS with its stored size and count; the best PSNR
-    of each budget in bold."""
+    of each budget in bold. budget_start: each model's start (a dict by label; one number in reports before
+    members had their own)."""
     models = list(dict.fromkeys(r["model"] for r in rate))
     budgets = list(dict.fromkeys(r["budget"] for r in rate))
     at = {(r["budget"], r["model"]): r for r in rate}
-    start = (f"; each run started with {budget_start:g}x the primitives that fit and shed down to its budget"
-             if budget_start and budget_start != 1 else "")
+    starts = budget_start if isinstance(budget_start, dict) else {m: budget_start for m in models}
+    told = {m: starts.get(m) for m in models if starts.get(m) and starts.get(m) != 1}
+    if len(set(told.values())) == 1 and len(told) == len(models):
+        start = (f"; each run started with {next(iter(told.values())):g}x the primitives that fit and shed down to "
+                 "its budget")
+    elif told:
+        start = ("; each run started with " + ", ".join(f"{v:g}x ({m})" for m, v in told.items())
+                 + " the primitives that fit and shed down to its budget")
+    else:
+        start = ""
     lines = ["", f"Rate: every model at every budget, stored as {store} (PSNR / LPIPS, stored kB, primitives at the "
              f"end{start}):", "",
              "| budget | " + " | ".join(models) + " |", "|---" * (len(models) + 1) + "|"]

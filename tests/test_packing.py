@@ -309,22 +309,23 @@ def test_compare_budgets_trains_every_model_at_every_budget(tmp_path):
         compare(["2dgs"], data, out, iterations=20, budgets="5%", equal_bytes=True, progress=False)
 
 
-def test_budgeted_runs_start_with_twice_what_fits_and_shed_to_the_budget(tmp_path):
-    from splatzoo.compare import BUDGET_START, compare
+def test_budgeted_runs_start_with_each_members_multiple_of_what_fits_and_shed_to_the_budget(tmp_path):
+    from splatzoo.compare import compare
     from splatzoo.data.synthetic import make_synthetic_scene
 
     data = make_synthetic_scene("sweater", tmp_path / "data", views=6, width=32, height=32)
     out = tmp_path / "cmp"
     report = compare(["2dgs", "beta-gabor"], data, out, iterations=40, num_primitives=300, budgets="30%,100%",
                      store="8bit", progress=False)
-    assert report["settings"]["budget_start"] == BUDGET_START == 2
+    starts = {"2dgs": 3, "beta-gabor": 2}  # plain surfels start from more (SplatModel.budget_start)
+    assert report["settings"]["budget_start"] == starts
     for r in report["rate"]:
-        assert r["start_primitives"] == 2 * r["fit_primitives"], r
+        assert r["start_primitives"] == starts[r["model"]] * r["fit_primitives"], r
         assert r["stored_bytes"] <= r["budget_bytes"], r     # shed down to the budget
         assert r["num_primitives"] <= r["fit_primitives"], r
         assert r["run"] != r["model"]                        # 100% is a run of its own, not the unbudgeted one
         assert r["stored_bytes"] == (out / "runs" / r["run"] / "model.szp").stat().st_size
-    assert "each run started with 2x the primitives that fit" in (out / "report.md").read_text()
+    assert "each run started with 3x (2dgs), 2x (beta-gabor) the primitives that fit" in (out / "report.md").read_text()
     for bad in (0.5, float("nan"), 17):
         with pytest.raises(SplatzooError, match="--budget-start must be a number from 1 to 16"):
             compare(["2dgs"], data, tmp_path / "bad", iterations=20, budgets="50%", budget_start=bad, progress=False)
@@ -477,7 +478,7 @@ def test_a_byte_budget_that_holds_no_surfel_or_is_no_size_is_refused_before_the_
     assert (tmp_path / "r" / "model.szp").stat().st_size <= one
 
 
-def test_densification_grows_to_twice_what_the_byte_budget_holds(tmp_path):
+def test_densification_grows_to_the_members_multiple_of_what_the_byte_budget_holds(tmp_path):
     from splatzoo.data.synthetic import make_synthetic_scene
     from splatzoo.data import load_scene
     from splatzoo.training import TrainConfig, Trainer, budget
@@ -487,12 +488,13 @@ def test_densification_grows_to_twice_what_the_byte_budget_holds(tmp_path):
     for name, per in (("2dgs", 16), ("beta-gabor", 17.125)):
         cfg = TrainConfig(iterations=10, num_primitives=60, max_bytes=600, store="8bit")
         trainer = Trainer.start(scene, name, make_config(name), cfg, "cpu", torch.device("cpu"))
-        assert budget.START == 2   # the same start as compare's budgeted runs
-        assert trainer.budget == 2 * int(600 // per) < Trainer.start(scene, name, make_config(name), TrainConfig(
+        start = {"2dgs": 3, "beta-gabor": 2}[name]   # the member's own, as compare's budgeted runs start
+        assert trainer.net.budget_start == start and budget.start_count(trainer.net, 600, "8bit") == trainer.budget
+        assert trainer.budget == start * int(600 // per) < Trainer.start(scene, name, make_config(name), TrainConfig(
             iterations=10, num_primitives=60), "cpu", torch.device("cpu")).budget, name
 
 
-def test_a_budgeted_run_starts_from_twice_what_fits_unless_told_a_count(tmp_path, capsys):
+def test_a_budgeted_run_starts_from_its_multiple_of_what_fits_unless_told_a_count(tmp_path, capsys):
     from splatzoo.data.synthetic import make_synthetic_scene
     from splatzoo.data import load_scene
     from splatzoo.training import TrainConfig, Trainer
@@ -500,8 +502,8 @@ def test_a_budgeted_run_starts_from_twice_what_fits_unless_told_a_count(tmp_path
     scene = load_scene(make_synthetic_scene("sweater", tmp_path / "data", views=4, width=32, height=32))
     points = scene.points.shape[0]
     cpu = torch.device("cpu")
-    for name, per in (("2dgs", 16), ("beta-gabor", 17.125)):
-        start = 2 * int(600 // per)
+    for name, per, times in (("2dgs", 16, 3), ("beta-gabor", 17.125, 2)):
+        start = times * int(600 // per)
         assert points > start
         trainer = Trainer.start(scene, name, make_config(name), TrainConfig(iterations=10, max_bytes=600, store="8bit"),
                                 "cpu", cpu)

@@ -22,6 +22,11 @@ class Surfel2DConfig:
 
 
 class Surfel2DModel(SurfelModel):
+    # plain surfels have no richness to shed, only surfels: three times what fits beat twice (2dgs on the quick
+    # sweater, three seeds: +0.19 / +0.37 / +0.20 dB at 5 / 25 / 100%; the fox +0.24 / +0.36 at 25 / 100%), while
+    # beta-gabor's waves do better from twice (BENCHMARKS.md, "What fits a budget, found in a second")
+    budget_start = 3.0
+
     def __init__(self, config: Surfel2DConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
         self.sh_dc = nn.Parameter(torch.zeros(num_primitives, 1, 3))

@@ -32,7 +32,7 @@ from torch import nn
 from ..errors import ShapeError
 from ..rasterizers.reference import sample_texture
 from ..types import TEXTURE_RADIUS, Camera, Surfels
-from .base import inverse_sigmoid
+from .base import SplatModel, inverse_sigmoid
 from .surfel2d import Surfel2DConfig, Surfel2DModel
 
 ALPHA_INIT_LOGIT = 4.6  # sigmoid: 0.990, the surfel nearly as its 2DGS self
@@ -52,6 +52,8 @@ class TexturedConfig(Surfel2DConfig):
 
 
 class TexturedModel(Surfel2DModel):
+    budget_start = SplatModel.budget_start  # its textures shed too; the plain surfels' larger start is not measured here
+
     def __init__(self, config: TexturedConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
         T = config.texture_size

@@ -18,12 +18,6 @@ import math
 
 from ..zoo import stored_bytes
 
-# A budgeted model holds this many times the surfels that fit its budget plain before it sheds: `compare --budgets`
-# starts every run with that many, and `train --max-bytes` starts with no more (start_count) and densifies to no
-# more. The survivors of a larger start beat a count fixed from the start for every member (2dgs on the quick
-# sweater: +0.8 dB at 5%, +0.9 at 25%, +1.3 at 100%; BENCHMARKS.md, "Budgeted runs start with twice what fits"), and
-# 2dgs, which has no richness to shed, is not left as the one member without that choice.
-START = 2.0
 FROM = 0.5    # the first shedding, as a fraction of the run
 UNTIL = 0.85  # the model is within its budget from here on
 STEPS = 8     # sheddings between FROM and UNTIL
@@ -34,12 +28,13 @@ MAX_ROUNDS = 16  # choices per shedding at most (CHOICES, and what a way that fr
 
 
 def start_count(net, max_bytes: int, precision: str) -> int:
-    """The most surfels a model like `net` holds under a budget of `max_bytes` before it sheds: START times the rows
-    the budget holds plain (SplatModel.shed_richness) at `precision`. A run under a budget starts with no more (its
-    scene's points subsampled, as `compare --budgets` starts every run), and densification grows to no more."""
+    """The most surfels a model like `net` holds under a budget of `max_bytes` before it sheds: its budget_start
+    (SplatModel.budget_start) times the rows the budget holds plain (SplatModel.shed_richness) at `precision`. A run
+    under a budget starts with no more (its scene's points subsampled, as `compare --budgets` starts every run), and
+    densification grows to no more."""
     plain = copy.deepcopy(net).shed_richness().stored_row_bytes(precision)
     per = float(plain.mean()) if plain.numel() else 1.0
-    return max(1, int(START * (max_bytes // max(per, 1.0))))
+    return max(1, int(net.budget_start * (max_bytes // max(per, 1.0))))
 
 
 def shedding_steps(iterations: int) -> list[int]:

@@ -382,7 +382,7 @@ class Trainer:
         self.reset_every = max(cfg.at(cfg.opacity_reset_interval), cfg.opacity_reset_interval // 3)
         # from the scene and the config alone, so that a resumed run has the same budget
         self.budget = cfg.max_primitives or densify_budget(scene, cfg.num_primitives or scene.points.shape[0])
-        if cfg.max_bytes:  # densification grows to budget.START times the surfels the byte budget holds plain
+        if cfg.max_bytes:  # densification grows to budget_start times the surfels the byte budget holds plain
             self.budget = min(self.budget, budget.start_count(self.net, cfg.max_bytes, cfg.store))
         self._probe_views = None  # (camera, image) pairs of _probe_error, made on its first call
         self.shedding_steps = set(budget.shedding_steps(cfg.iterations)) if cfg.max_bytes else set()
@@ -406,7 +406,7 @@ class Trainer:
         check_start(scene, model, model_config, cfg, device, initial=count)
         if capped and (comm is None or comm.rank == 0):
             print(f"--max-bytes {cfg.max_bytes:,}: starting from {count:,} of the scene's {points:,} points "
-                  f"({budget.START:g}x the {model} surfels the budget holds plain)", flush=True)
+                  f"({one.budget_start:g}x the {model} surfels the budget holds plain)", flush=True)
         pts, cols = select_initial_points(scene.points, scene.colors, count, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
         return cls(scene, net, cfg, backend, device, comm=comm)
