@@ -332,6 +332,19 @@ def test_budgeted_runs_start_with_each_members_multiple_of_what_fits_and_shed_to
         assert not (tmp_path / "bad").exists()
 
 
+def test_the_rate_table_says_each_members_start_and_reads_an_older_reports_single_start():
+    from splatzoo.compare import rate_markdown
+
+    rate = [{"model": m, "budget": "5%", "budget_bytes": 1608, "psnr": p, "lpips": 0.5, "stored_bytes": 1600,
+             "num_primitives": 90}
+            for m, p in (("2dgs", 21.0), ("beta-gabor", 22.0))]
+    text = "\n".join(rate_markdown(rate, "8bit", {"2dgs": 3.0, "beta-gabor": 2.0}))
+    assert "each run started with 3x (2dgs), 2x (beta-gabor) the primitives that fit" in text
+    assert "each run started with 2x the primitives that fit" in "\n".join(rate_markdown(rate, "8bit", 2.0))
+    assert "started with" not in "\n".join(rate_markdown(rate, "8bit", 1.0)) + "\n".join(rate_markdown(rate, "8bit"))
+    assert "**22.00**" in text
+
+
 # --- a byte budget -----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("name", ["2dgs", "gabor-adaptive", "beta-gabor", "textured", "neural-gabor"])
