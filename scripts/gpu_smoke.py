@@ -4,7 +4,8 @@
 
 Checks that training on cuda raises the test PSNR over the model it starts from (one step in), that a run stopped
 half way resumes to the end with the same iteration log, and that its final PSNR is within 0.5 dB of the uninterrupted
-run (the CUDA backward sums with float atomics, so the two runs are not bitwise equal). Prints one JSON line with the numbers; exit 1 on failure.
+run (the CUDA backward sums with float atomics, so the two runs are not bitwise equal). Prints one JSON line with the
+numbers; exit 1 on failure.
 """
 from __future__ import annotations
 
