@@ -763,7 +763,9 @@ def compare_command(
                                           "table"),
     budget_start: Optional[float] = typer.Option(None, "--budget-start", help="with --budgets: each budgeted run "
                                                  "starts with this many times the primitives that fit its budget "
-                                                 "(default: each model's own, 3 for 2dgs and beta, 2 for the others) "
+                                                 "(default: each model's own: 3 for 2dgs and beta, for beta-gabor 3 "
+                                                 "falling to 1.4 as the budget holds 80 to 1,864 surfels, 2 for the "
+                                                 "others) "
                                                  "and sheds those that cost its views least down to it from half-way "
                                                  "(1: start with what fits)"),
     store: str = _STORE,

@@ -101,9 +101,9 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
 
     `budgets` (rate-distortion curves): a list of sizes, each a fraction of the first model's stored size at its
     count ('25%', 0.25) or a size in bytes ('200kB', '1.5MB', 200000). The first model is trained at its count,
-    then every model at every budget, starting with `budget_start` (None: each model's own, SplatModel.budget_start)
-    times as many primitives as its packed file can hold within it (budget_count) and shedding down to the budget
-    from half-way (training/budget.py), in
+    then every model at every budget, starting with `budget_start` (None: each model's own multiple,
+    SplatModel.budget_start, which may depend on the count that fits) times as many primitives as its packed file
+    can hold within it (budget_count) and shedding down to the budget from half-way (training/budget.py), in
     out/runs/<label>@<count>; rate.png and the report's rate table plot PSNR, LPIPS and FPS against stored bytes.
     `store`: the precision every model is stored (and fine-tuned) at (packing.PRECISIONS)."""
     from .data import load_scene
@@ -141,7 +141,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
         if run.status == "foreign":
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
     runs, counts = _train_all(runner, choices, num_primitives, equal_bytes=equal_bytes, budgets=bool(sizes))
-    starts = {c.label: budget_start or member_budget_start(c) for c in choices}
+    starts = {c.label: member_budget_start(c, budget_start) for c in choices}
     rate = rate_curves(choices, sizes, scene, out, store, runs, runner.folders, runner.plan,
                        runner.train_or_reuse, starts) if sizes else []
     settings = {"data": str(Path(data).resolve()), "scene": scene.name, "iterations": iterations,
@@ -150,7 +150,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
                 "models": [c.label for c in choices], "equal_bytes": equal_bytes, "antialias": antialias,
                 "random_downscale": random_downscale, "primitives": counts, "trained_by_other_code": runner.other_code,
                 "train_views": len(scene.train), "test_views": len(scene.test), "store": store,
-                "budgets": [text for text, _, _ in sizes], "budget_start": starts if sizes else None}
+                "budgets": [text for text, _, _ in sizes], "budget_start": budget_start}
     return _write_report(out, scene, {"runs": runs, "settings": settings}, rate, runner.folders)
 
 
@@ -265,19 +265,19 @@ def _write_report(out: Path, scene, report: dict, rate: list, folders: dict) -> 
     return report
 
 
-def member_budget_start(choice: ModelChoice) -> float:
-    """How many times the primitives that fit a budget a budgeted run of `choice` starts with, by default: its
-    model's own (SplatModel.budget_start)."""
+def member_budget_start(choice: ModelChoice, given: float | None = None):
+    """fit -> how many times the `fit` primitives that a budget holds a budgeted run of `choice` starts with: `given`
+    (--budget-start) for every budget, or by default its model's own (SplatModel.budget_start)."""
     from .registry import MODELS
 
-    return float(MODELS.get(choice.model).cls.budget_start)
+    return (lambda fit: float(given)) if given else MODELS.get(choice.model).cls.budget_start
 
 
 def rate_curves(choices, sizes, scene, out: Path, store: str, runs: dict, run_dirs: dict, plan, train_or_reuse,
                 starts: dict) -> list:
     """compare --budgets: every model at every budget (the first model's run at its count, in `runs`, sets the
     fractions), each run planned (and refused, if it must be) before any trains; one record per (budget, model).
-    Each starts with starts[label] times the primitives that fit."""
+    Each starts with starts[label](fit) times the `fit` primitives that its budget holds."""
     first = choices[0]
     reference = stored_size_of(runs[first.label], run_dirs[first.label], store)
     reference_count = run_dirs[first.label].record()["train"]["num_primitives"] or scene.points.shape[0]
@@ -289,7 +289,7 @@ def rate_curves(choices, sizes, scene, out: Path, store: str, runs: dict, run_di
             fit = budget_count(c, target, store, like)  # a model that sheds richness: as many as fit plain
             if fit < 1:
                 raise too_small(c, text, target, store, like)
-            count = math.ceil(starts[c.label] * fit)
+            count = math.ceil(starts[c.label](fit) * fit)
             same = c is first and count == reference_count <= fit  # the reference run fits as it is
             run = run_dirs[c.label] if same else Run(out / "runs" / f"{_safe(c.label)}@{count}")
             planned_runs.append((text, target, c, fit, count, run,
@@ -471,13 +471,12 @@ def rate_markdown(rate: list[dict], store: str, budget_start: dict | float | Non
     models = list(dict.fromkeys(r["model"] for r in rate))
     budgets = list(dict.fromkeys(r["budget"] for r in rate))
     at = {(r["budget"], r["model"]): r for r in rate}
-    starts = budget_start if isinstance(budget_start, dict) else {m: budget_start for m in models}
-    told = {m: starts.get(m) for m in models if starts.get(m) and starts.get(m) != 1}
+    told = {m: t for m, t in _starts_told(rate, models, budget_start).items() if t}
     if len(set(told.values())) == 1 and len(told) == len(models):
-        start = (f"; each run started with {next(iter(told.values())):g}x the primitives that fit and shed down to "
-                 "its budget")
+        start = (f"; each run started with {next(iter(told.values()))} the primitives that fit and shed down to its "
+                 "budget")
     elif told:
-        start = ("; each run started with " + ", ".join(f"{v:g}x ({m})" for m, v in told.items())
+        start = ("; each run started with " + ", ".join(f"{v} ({m})" for m, v in told.items())
                  + " the primitives that fit and shed down to its budget")
     else:
         start = ""
@@ -501,6 +500,24 @@ def rate_markdown(rate: list[dict], store: str, budget_start: dict | float | Non
             lines += ["", f"Storage at {store} cost {max(losses):+.2f} dB at most (mean {np.mean(losses):+.2f}) "
                       "against the same runs' full-precision values."]
     return lines
+
+
+def _starts_told(rate: list[dict], models: list[str], budget_start) -> dict[str, str]:
+    """Each model's start as the rate table says it ('3x', or '3x / 1.8x / 1.4x by budget'; '' for what fits): from
+    its records' start and fit counts, or in reports from before records had them, from `budget_start` (a dict by
+    label, or one number for all)."""
+    given = budget_start if isinstance(budget_start, dict) else {m: budget_start for m in models}
+    told = {}
+    for m in models:
+        rows = [r for r in rate if r["model"] == m]
+        if rows and all(r.get("start_primitives") and r.get("fit_primitives") for r in rows):
+            multiples = [f"{r['start_primitives'] / r['fit_primitives']:.2g}x" for r in rows]
+        else:
+            multiples = [f"{given[m]:g}x"] if given.get(m) else []
+        distinct = list(dict.fromkeys(multiples))
+        told[m] = "" if distinct in ([], ["1x"]) else distinct[0] if len(distinct) == 1 else \
+            " / ".join(multiples) + " by budget"
+    return told
 
 
 def plot_rate(rate: list[dict], path, *, title: str = "") -> None:

@@ -3,6 +3,7 @@ evaluation used, sizes are the files' own, quantisation stays within its step, b
 damaged or crafted packed file is a named error."""
 import hashlib
 import json
+import math
 import struct
 import zlib
 
@@ -317,15 +318,19 @@ def test_budgeted_runs_start_with_each_members_multiple_of_what_fits_and_shed_to
     out = tmp_path / "cmp"
     report = compare(["2dgs", "beta-gabor"], data, out, iterations=40, num_primitives=300, budgets="30%,100%",
                      store="8bit", progress=False)
-    starts = {"2dgs": 3, "beta-gabor": 2}  # plain surfels start from more (SplatModel.budget_start)
-    assert report["settings"]["budget_start"] == starts
+    assert report["settings"]["budget_start"] is None  # each member's own (SplatModel.budget_start)
     for r in report["rate"]:
-        assert r["start_primitives"] == starts[r["model"]] * r["fit_primitives"], r
+        fit = r["fit_primitives"]
+        start = {"2dgs": 3, "beta-gabor": min(3, 1 + 18 / fit ** 0.5)}[r["model"]]  # plain surfels: 3x at any budget
+        assert r["start_primitives"] == math.ceil(start * fit), r
         assert r["stored_bytes"] <= r["budget_bytes"], r     # shed down to the budget
         assert r["num_primitives"] <= r["fit_primitives"], r
         assert r["run"] != r["model"]                        # 100% is a run of its own, not the unbudgeted one
         assert r["stored_bytes"] == (out / "runs" / r["run"] / "model.szp").stat().st_size
-    assert "each run started with 3x (2dgs), 2x (beta-gabor) the primitives that fit" in (out / "report.md").read_text()
+    fits = [r["fit_primitives"] for r in report["rate"] if r["model"] == "beta-gabor"]
+    told = " / ".join(f"{math.ceil(min(3, 1 + 18 / fit ** 0.5) * fit) / fit:.2g}x" for fit in fits)
+    assert f"each run started with 3x (2dgs), {told} by budget (beta-gabor) the primitives that fit" in (
+        out / "report.md").read_text()
     for bad in (0.5, float("nan"), 17):
         with pytest.raises(SplatzooError, match="--budget-start must be a number from 1 to 16"):
             compare(["2dgs"], data, tmp_path / "bad", iterations=20, budgets="50%", budget_start=bad, progress=False)
@@ -343,6 +348,12 @@ def test_the_rate_table_says_each_members_start_and_reads_an_older_reports_singl
     assert "each run started with 2x the primitives that fit" in "\n".join(rate_markdown(rate, "8bit", 2.0))
     assert "started with" not in "\n".join(rate_markdown(rate, "8bit", 1.0)) + "\n".join(rate_markdown(rate, "8bit"))
     assert "**22.00**" in text
+    # records that carry their counts say each member's start at each budget, whatever the settings say
+    rate += [{**r, "budget": "100%", "budget_bytes": 32178} for r in rate]
+    for r, (fit, start) in zip(rate, ((100, 300), (80, 240), (2000, 6000), (1864, 2642))):
+        r.update(fit_primitives=fit, start_primitives=start)
+    text = "\n".join(rate_markdown(rate, "8bit", None))
+    assert "each run started with 3x (2dgs), 3x / 1.4x by budget (beta-gabor) the primitives that fit" in text
 
 
 # --- a byte budget -----------------------------------------------------------------------------------------------
@@ -501,10 +512,23 @@ def test_densification_grows_to_the_members_multiple_of_what_the_byte_budget_hol
     for name, per in (("2dgs", 16), ("beta-gabor", 17.125)):
         cfg = TrainConfig(iterations=10, num_primitives=60, max_bytes=600, store="8bit")
         trainer = Trainer.start(scene, name, make_config(name), cfg, "cpu", torch.device("cpu"))
-        start = {"2dgs": 3, "beta-gabor": 2}[name]   # the member's own, as compare's budgeted runs start
-        assert trainer.net.budget_start == start and budget.start_count(trainer.net, 600, "8bit") == trainer.budget
-        assert trainer.budget == start * int(600 // per) < Trainer.start(scene, name, make_config(name), TrainConfig(
+        fit = int(600 // per)
+        start = {"2dgs": 3, "beta-gabor": min(3, 1 + 18 / fit ** 0.5)}[name]  # its own, as compare's runs start
+        assert trainer.net.budget_start(fit) == start and budget.start_count(trainer.net, 600, "8bit") == trainer.budget
+        assert trainer.budget == math.ceil(start * fit) < Trainer.start(scene, name, make_config(name), TrainConfig(
             iterations=10, num_primitives=60), "cpu", torch.device("cpu")).budget, name
+
+
+def test_beta_gabors_budgeted_start_falls_as_the_budget_grows_and_plain_surfels_keep_theirs():
+    from splatzoo.registry import MODELS
+
+    bg, plain = MODELS.get("beta-gabor").cls, MODELS.get("2dgs").cls
+    starts = [bg.budget_start(fit) for fit in (1, 36, 80, 455, 1864, 10**6)]
+    assert starts[:2] == [3.0, 3.0]                       # never more than three times what fits
+    assert starts == sorted(starts, reverse=True) and all(1 < s <= 3 for s in starts)
+    assert [round(s, 1) for s in starts[2:5]] == [3.0, 1.8, 1.4]
+    assert {plain.budget_start(fit) for fit in (1, 80, 10**6)} == {3.0}
+    assert MODELS.get("textured").cls.budget_start(80) == MODELS.get("gabor").cls.budget_start(80) == 2.0
 
 
 def test_a_budgeted_run_starts_from_its_multiple_of_what_fits_unless_told_a_count(tmp_path, capsys):
@@ -515,13 +539,14 @@ def test_a_budgeted_run_starts_from_its_multiple_of_what_fits_unless_told_a_coun
     scene = load_scene(make_synthetic_scene("sweater", tmp_path / "data", views=4, width=32, height=32))
     points = scene.points.shape[0]
     cpu = torch.device("cpu")
-    for name, per, times in (("2dgs", 16, 3), ("beta-gabor", 17.125, 2)):
+    for name, per, times in (("2dgs", 16, 3), ("beta-gabor", 17.125, 3)):  # beta-gabor: 3x at 35 surfels that fit
         start = times * int(600 // per)
         assert points > start
         trainer = Trainer.start(scene, name, make_config(name), TrainConfig(iterations=10, max_bytes=600, store="8bit"),
                                 "cpu", cpu)
         assert trainer.net.num_primitives == start == trainer.budget, name  # as compare --budgets starts its runs
-        assert f"--max-bytes 600: starting from {start:,} of the scene's {points:,} points" in capsys.readouterr().out
+        assert (f"--max-bytes 600: starting from {start:,} of the scene's {points:,} points (3x the {name} surfels"
+                in capsys.readouterr().out)
         told = Trainer.start(scene, name, make_config(name), TrainConfig(
             iterations=10, num_primitives=points, max_bytes=600, store="8bit"), "cpu", cpu)
         assert told.net.num_primitives == points  # --num-primitives is kept: the run sheds from there

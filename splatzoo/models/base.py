@@ -74,12 +74,6 @@ class SplatModel(nn.Module):
     # the densification strategy a run uses when its config says "auto" (TrainConfig.strategy): "adc", "mcmc" or
     # "frequency"
     densify_strategy: str = "adc"
-    # under a byte budget the model starts with this many times the primitives that fit it plain, and sheds down to
-    # it (training/budget.py): `compare --budgets` starts each run with that many, `train --max-bytes` densifies to
-    # no more. The survivors of a larger start beat a count fixed from the start (2dgs on the quick sweater: +0.8 dB
-    # at 5%, +0.9 at 25%, +1.3 at 100%; BENCHMARKS.md, "Budgeted runs start with twice what fits"); how much larger
-    # pays depends on the member (Surfel2DModel's)
-    budget_start: float = 2.0
     # names of buffers with one row per primitive (e.g. per-surfel wave counts): densification and loading edit
     # them with the parameters; they are not trained
     primitive_buffers: tuple[str, ...] = ()
@@ -95,6 +89,15 @@ class SplatModel(nn.Module):
     # surfels_of(camera) (no gradient); set by the trainer that trains the model, so on_step can measure what an
     # edit would cost before making it. None outside training
     probe_error: Any = None
+
+    @classmethod
+    def budget_start(cls, fit: int) -> float:
+        """Under a byte budget the model starts with this many times the `fit` primitives that the budget holds plain,
+        and sheds down to it (training/budget.py): `compare --budgets` starts each run with that many, `train
+        --max-bytes` densifies to no more. The survivors of a larger start beat a count fixed from the start (2dgs on
+        the quick sweater: +0.8 dB at 5%, +0.9 at 25%, +1.3 at 100%; BENCHMARKS.md, "Budgeted runs start with twice
+        what fits"); how much larger pays depends on the member (Surfel2DModel's, BetaGaborModel's)."""
+        return 2.0
 
     def __init__(self, config: Any, num_primitives: int = 0):
         super().__init__()

@@ -14,6 +14,7 @@ training/wave_fit.py; "Waves fitted to the photos"). Under a byte budget (TrainC
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -45,3 +46,12 @@ class BetaGaborConfig(AdaptiveGaborConfig):
 
 class BetaGaborModel(BetaFalloff, GaborModel):
     """gabor-adaptive surfels with a learned Beta falloff each."""
+
+    @classmethod
+    def budget_start(cls, fit: int) -> float:
+        """Waves pay where surfels are few: under a small budget more surfels to choose from are worth their shed
+        waves, under a large one the shedding takes waves that were worth more (the quick sweater, three seeds: the
+        best start was 3x what fits at 5%, 2x at 25%, 1.5x at 100%; boots at 256 px, 100%: 1.5x +0.46 dB over 2x;
+        BENCHMARKS.md, "A budgeted start that falls with the budget"). So it starts with what fits plus 18 times its
+        square root: 3x at 80 surfels, 1.8x at 455, 1.4x at 1,864 (never more than 3x)."""
+        return min(3.0, 1.0 + 18.0 / math.sqrt(max(fit, 1)))

@@ -28,13 +28,20 @@ MAX_ROUNDS = 16  # choices per shedding at most (CHOICES, and what a way that fr
 
 
 def start_count(net, max_bytes: int, precision: str) -> int:
-    """The most surfels a model like `net` holds under a budget of `max_bytes` before it sheds: its budget_start
-    (SplatModel.budget_start) times the rows the budget holds plain (SplatModel.shed_richness) at `precision`. A run
+    """The most surfels a model like `net` holds under a budget of `max_bytes` before it sheds: its multiple
+    (SplatModel.budget_start) of the rows the budget holds plain (SplatModel.shed_richness) at `precision`. A run
     under a budget starts with no more (its scene's points subsampled, as `compare --budgets` starts every run), and
     densification grows to no more."""
+    fit = plain_count(net, max_bytes, precision)
+    return max(1, math.ceil(net.budget_start(fit) * fit))
+
+
+def plain_count(net, max_bytes: int, precision: str) -> int:
+    """The rows of a model like `net`, all plain (SplatModel.shed_richness), that `max_bytes` holds at `precision`
+    (the file's fixed bytes aside)."""
     plain = copy.deepcopy(net).shed_richness().stored_row_bytes(precision)
     per = float(plain.mean()) if plain.numel() else 1.0
-    return max(1, int(net.budget_start * (max_bytes // max(per, 1.0))))
+    return int(max_bytes // max(per, 1.0))
 
 
 def shedding_steps(iterations: int) -> list[int]:

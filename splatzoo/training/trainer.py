@@ -406,7 +406,8 @@ class Trainer:
         check_start(scene, model, model_config, cfg, device, initial=count)
         if capped and (comm is None or comm.rank == 0):
             print(f"--max-bytes {cfg.max_bytes:,}: starting from {count:,} of the scene's {points:,} points "
-                  f"({one.budget_start:g}x the {model} surfels the budget holds plain)", flush=True)
+                  f"({start / budget.plain_count(one, cfg.max_bytes, cfg.store):.3g}x the {model} surfels the budget "
+                  "holds plain)", flush=True)
         pts, cols = select_initial_points(scene.points, scene.colors, count, cfg.seed)
         net = create_model(model, pts, cols, seed=cfg.seed, **dataclasses.asdict(model_config))
         return cls(scene, net, cfg, backend, device, comm=comm)
