@@ -769,6 +769,9 @@ def compare_command(
                                                  "and sheds those that cost its views least down to it from half-way "
                                                  "(1: start with what fits)"),
     store: str = _STORE,
+    lpips_net: str = typer.Option("vgg", "--lpips-net", help="the network LPIPS is scored with: vgg (the papers' "
+                                  "tables) or alex (the weights a GPU check carries); a finished run scored with the "
+                                  "other is scored again, not retrained"),
     seed: int = typer.Option(0, "--seed", help="random seed (initial points, view order, initialisation)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="retrain runs in --out that were made with other "
                                    "settings or by other splatzoo code (without it other settings are an error; "
@@ -792,7 +795,7 @@ def compare_command(
     compare(models, data, out, iterations=iterations, num_primitives=num_primitives, densify=densify, quick=quick,
             strategy=strategy, seed=seed, backend=backend, synthetic_scene=scene, overwrite=overwrite,
             equal_bytes=equal_bytes, antialias=antialias, random_downscale=random_downscale,
-            scene_options=scene_options, budgets=budgets, store=store, budget_start=budget_start)
+            scene_options=scene_options, budgets=budgets, store=store, budget_start=budget_start, lpips_net=lpips_net)
     typer.echo((out / "report.md").read_text())
     typer.echo(f"wrote {out}: compare.json, report.md, compare.png, convergence.png"
                f"{', rate.png' if budgets else ''}, runs/<model>/")

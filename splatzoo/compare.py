@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from .errors import SplatzooError
+from .evaluate import checked_lpips_net, lpips_net_of
 from .figures import metric, pyplot, save_figure
 from .io import write_json, write_text
 from .runs import Run, differences, evaluate_run, made_by_other_code, make_record, train
@@ -86,7 +87,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
             seed: int = 0, backend: str = "auto", scene_options: dict | None = None, progress: bool = True,
             synthetic_scene: str | None = None, overwrite: bool = False, equal_bytes: bool = False,
             antialias: bool = True, random_downscale: float = 0.0, budgets=None, store: str = "float32",
-            budget_start: float | None = None) -> dict:
+            budget_start: float | None = None, lpips_net: str | None = None) -> dict:
     """Train every model (names like 'gabor:n_waves=8', or ModelChoice) with identical data, initial points and
     budget; write compare.json, report.md, compare.png and convergence.png into `out`. Without `data`, a built-in
     synthetic scene is made. The budget is `num_primitives` each (equal count) or, with `equal_bytes`, the stored
@@ -105,10 +106,13 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     SplatModel.budget_start, which may depend on the count that fits) times as many primitives as its packed file
     can hold within it (budget_count) and shedding down to the budget from half-way (training/budget.py), in
     out/runs/<label>@<count>; rate.png and the report's rate table plot PSNR, LPIPS and FPS against stored bytes.
-    `store`: the precision every model is stored (and fine-tuned) at (packing.PRECISIONS)."""
+    `store`: the precision every model is stored (and fine-tuned) at (packing.PRECISIONS). `lpips_net`: the LPIPS
+    network every run is scored with (vgg or alex; None: evaluate.LPIPS_NET); a finished run scored with another is
+    scored again, not retrained."""
     from .data import load_scene
 
     choices, model_configs = _checked_choices(models)
+    lpips_net = checked_lpips_net(lpips_net)
     if budget_start is not None and not (isinstance(budget_start, (int, float)) and math.isfinite(budget_start)
                                          and 1 <= budget_start <= 16):
         raise SplatzooError(f"--budget-start must be a number from 1 to 16 (how many times the primitives that fit "
@@ -136,7 +140,8 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
     sizes = parse_budgets(budgets) if budgets else []
     _refuse_small_budgets(choices, sizes, num_primitives or scene.points.shape[0], store)
     runner = _Runs(scene, scene_options, model_configs, base_cfg, overwrite=overwrite, backend=backend,
-                   progress=progress, folders={c.label: Run(out / "runs" / _safe(c.label)) for c in choices})
+                   progress=progress, lpips_net=lpips_net,
+                   folders={c.label: Run(out / "runs" / _safe(c.label)) for c in choices})
     for run in runner.folders.values():
         if run.status == "foreign":
             raise SplatzooError(f"{run.path} exists and is not a splatzoo run folder; move it or choose another --out")
@@ -150,7 +155,7 @@ def compare(models: list[str], data=None, out="runs/compare", *, iterations: int
                 "models": [c.label for c in choices], "equal_bytes": equal_bytes, "antialias": antialias,
                 "random_downscale": random_downscale, "primitives": counts, "trained_by_other_code": runner.other_code,
                 "train_views": len(scene.train), "test_views": len(scene.test), "store": store,
-                "budgets": [text for text, _, _ in sizes], "budget_start": budget_start}
+                "budgets": [text for text, _, _ in sizes], "budget_start": budget_start, "lpips_net": lpips_net}
     return _write_report(out, scene, {"runs": runs, "settings": settings}, rate, runner.folders)
 
 
@@ -191,6 +196,7 @@ class _Runs:
     overwrite: bool
     backend: str
     progress: bool
+    lpips_net: str
     folders: dict
     other_code: list = field(default_factory=list)
 
@@ -223,11 +229,14 @@ class _Runs:
 
     def train_or_reuse(self, c: ModelChoice, cfg: TrainConfig, status: str, run: Run | None = None) -> dict:
         run = run or self.folders[c.label]
-        if status == "finished":  # trained earlier with these settings: reuse
-            return run.metrics() or evaluate_run(run.path, backend=self.backend)
+        if status == "finished":  # trained earlier with these settings: reuse (scored again for another LPIPS net)
+            metrics = run.metrics()
+            if metrics is not None and lpips_net_of(metrics) == self.lpips_net:
+                return metrics
+            return evaluate_run(run.path, backend=self.backend, lpips_net=self.lpips_net)
         return train(self.scene, c.model, c.options, cfg, run.path, resume=status in ("started", "interrupted"),
                      overwrite=status == "overwrite", progress=self.progress, scene_options=self.scene_options,
-                     command="splatzoo compare").metrics
+                     command="splatzoo compare", lpips_net=self.lpips_net).metrics
 
 
 def _train_all(runner: _Runs, choices: list[ModelChoice], num_primitives, *, equal_bytes: bool,

@@ -18,6 +18,23 @@ LPIPS_NET = "vgg"
 LPIPS_CONVENTION = "3dgs"  # the 2DGS/3DGS metrics script (and the paper's tables) feed [0,1] images to VGG
 
 
+def checked_lpips_net(net: str | None) -> str:
+    """The LPIPS network a command scores with (None: LPIPS_NET), refused before any training if unknown."""
+    from .errors import UnknownNameError
+    from .metrics import LPIPS_NETS
+
+    net = LPIPS_NET if net is None else net
+    if net not in LPIPS_NETS:
+        raise UnknownNameError(f"unknown LPIPS network {net!r}; choose one of {', '.join(LPIPS_NETS)}")
+    return net
+
+
+def lpips_net_of(metrics: dict) -> str | None:
+    """The LPIPS network a metrics.json was scored with (its conventions' 'v0.1 NET, ...'), None if it does not say."""
+    told = str((metrics.get("conventions") or {}).get("lpips", "")).split(",")[0].split()
+    return told[1] if len(told) == 2 and told[0] == "v0.1" else None
+
+
 def _device(model) -> torch.device:
     return next(model.parameters()).device
 

@@ -31,6 +31,8 @@ def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None
         metrics = evaluate(model, scene, backend=backend, train_seconds=(old or {}).get("train_seconds"),
                            iterations=record["train"].get("iterations"), lpips_net=lpips_net or LPIPS_NET,
                            lpips_convention=lpips_convention or LPIPS_CONVENTION)
+        if old and old.get("float32_psnr") is not None:  # what storage cost: the same model, the same test views
+            metrics["float32_psnr"] = old["float32_psnr"]
         if scales:
             metrics["scales"] = evaluate_scales(model, scene, scales, backend=backend, lpips_net=lpips_net or LPIPS_NET,
                                                 lpips_convention=lpips_convention or LPIPS_CONVENTION)

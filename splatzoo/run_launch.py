@@ -108,7 +108,8 @@ def _asked_record(model, model_options, config, scene_options, recorded_model: s
 
 def train(data, model: str | None = None, model_options: dict | None = None, config: TrainConfig | dict | None = None,
           out=None, *, resume: bool = False, overwrite: bool = False, progress: bool = True,
-          evaluate_at_end: bool = True, stop_after: int | None = None, scene_options: dict | None = None,
+          evaluate_at_end: bool = True, lpips_net: str | None = None, stop_after: int | None = None,
+          scene_options: dict | None = None,
           command: str = "splatzoo train", watch=None, init_from=None) -> TrainResult:
     """Train `model` (default gabor) on `data` (a dataset path or a loaded Scene) into the run folder `out`.
 
@@ -120,10 +121,14 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     the same way, silently, after that iteration (tests). watch(net, iteration, scene, final): called after every
     step and at the end (a live viewer); one process only. init_from: start from the surfels of this model file
     (.ply or .pt) instead of the scene's points; its model must be `model` (None: the file's) with the same config
-    (no model options: the file's).
+    (no model options: the file's). lpips_net: the LPIPS network of the evaluation at the end (vgg or alex; None:
+    evaluate.LPIPS_NET).
     """
     out = Run(out or Path("runs") / (model or "gabor"))
+    from .evaluate import checked_lpips_net
     from .training.distributed import launched_world
+
+    lpips_net = checked_lpips_net(lpips_net) if evaluate_at_end else lpips_net
 
     if isinstance(config, TrainConfig):  # a value no run can use is refused before the run folder is made
         config.validate()
@@ -144,6 +149,7 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     if world:
         return _train_launched(out, world, data, model, model_options, config, scene_options, resume=resume,
                                overwrite=overwrite, progress=progress, evaluate_at_end=evaluate_at_end,
+                               lpips_net=lpips_net,
                                stop_after=stop_after, command=command)
     made = not out.path.exists()
     with out.lock(command, create=True), _restoring_on_failure(out, made):
@@ -154,9 +160,10 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
                 raise SplatzooError(f"{out.path} trains on {cfg.nproc} processes; the live viewer watches one. "
                                     "Resume without --viewer")
             return spawn_ranks(out, scene, model, model_config, cfg, state is not None, loop=_train_loop,
-                               progress=progress, evaluate_at_end=evaluate_at_end, stop_after=stop_after)
+                               progress=progress, evaluate_at_end=evaluate_at_end, lpips_net=lpips_net,
+                               stop_after=stop_after)
         return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
-                           evaluate_at_end=evaluate_at_end, stop_after=stop_after, watch=watch)
+                           evaluate_at_end=evaluate_at_end, lpips_net=lpips_net, stop_after=stop_after, watch=watch)
 
 
 @contextmanager
@@ -412,7 +419,8 @@ def _check_tensors(entries, what: str) -> None:
 
 
 def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, state, *, progress: bool,
-                evaluate_at_end: bool, stop_after: int | None, distributed: bool = False, watch=None) -> TrainResult:
+                evaluate_at_end: bool, stop_after: int | None, lpips_net: str | None = None, distributed: bool = False,
+                watch=None) -> TrainResult:
     """The loop around Trainer.step: logs, checkpoints (by iteration, by time, on SIGINT/SIGTERM), the final
     model and its evaluation. distributed: this process is one rank of torch.distributed's default process group;
     every rank runs the loop and rank 0 alone writes."""
@@ -477,7 +485,7 @@ def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, sta
     finally:
         bar.close()
     if stop == cfg.iterations and writer:
-        return _finish(run, trainer, scene, cfg, backend, evaluate_at_end=evaluate_at_end)
+        return _finish(run, trainer, scene, cfg, backend, evaluate_at_end=evaluate_at_end, lpips_net=lpips_net)
     return TrainResult(run.path, trainer.net, {})
 
 
@@ -502,9 +510,12 @@ def _trainer(run: Run, scene, model: str, model_config, cfg: TrainConfig, state,
     return trainer
 
 
-def _finish(run: Run, trainer: Trainer, scene, cfg: TrainConfig, backend: str, *, evaluate_at_end: bool) -> TrainResult:
+def _finish(run: Run, trainer: Trainer, scene, cfg: TrainConfig, backend: str, *, evaluate_at_end: bool,
+            lpips_net: str | None = None) -> TrainResult:
     """The trained model written (model.szp at the run's --store precision, model.pt with the values it loads back
-    as) and, with `evaluate_at_end`, evaluated on the test views (metrics.json, renders/)."""
+    as) and, with `evaluate_at_end`, evaluated on the test views (metrics.json, renders/; LPIPS with `lpips_net`,
+    None: evaluate.LPIPS_NET)."""
+    from .evaluate import LPIPS_NET
     from .zoo import save_model, stored_copy
 
     metrics = {}
@@ -520,7 +531,7 @@ def _finish(run: Run, trainer: Trainer, scene, cfg: TrainConfig, backend: str, *
             extra = ({"float32_psnr": test_psnr(trained, scene, backend, max_views=len(scene.test))}
                      if net is not trained and scene.test else {})
             metrics = {**_evaluate_into(run, net, scene, backend, train_seconds=trainer.train_seconds,
-                                        iterations=cfg.iterations), **extra}
+                                        iterations=cfg.iterations, lpips_net=lpips_net or LPIPS_NET), **extra}
             if extra:
                 run.write_metrics(metrics)
         except KeyboardInterrupt:
@@ -530,7 +541,8 @@ def _finish(run: Run, trainer: Trainer, scene, cfg: TrainConfig, backend: str, *
 
 
 def _train_launched(out: Run, world: int, data, model, model_options, config, scene_options, *, resume: bool,
-                    overwrite: bool, progress: bool, evaluate_at_end: bool, stop_after: int | None,
+                    overwrite: bool, progress: bool, evaluate_at_end: bool, lpips_net: str | None,
+                    stop_after: int | None,
                     command: str) -> TrainResult:
     """`train` in each of the processes a launcher (torchrun) started: rank 0 takes the run's lock, checks the
     request and prepares the run as one process would, then hands its decisions (scene, model, config, the
@@ -568,7 +580,8 @@ def _train_launched(out: Run, world: int, data, model, model_options, config, sc
                 raise SplatzooError(decided[0])
             scene, model, model_config, cfg, state = decided[1]
             return _train_loop(out, scene, model, model_config, cfg, state, progress=progress,
-                               evaluate_at_end=evaluate_at_end, stop_after=stop_after, distributed=True)
+                               evaluate_at_end=evaluate_at_end, lpips_net=lpips_net, stop_after=stop_after,
+                               distributed=True)
     finally:
         leave_process_group(dist)
 

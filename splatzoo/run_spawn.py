@@ -19,7 +19,7 @@ from .run_folder import Run, TrainingInterrupted, TrainResult
 from .training import TrainConfig
 
 def spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, resume: bool, *, loop, progress: bool,
-                evaluate_at_end: bool, stop_after: int | None) -> TrainResult:
+                evaluate_at_end: bool, stop_after: int | None, lpips_net: str | None = None) -> TrainResult:
     """Train on cfg.nproc processes (torch.distributed: gloo on CPU, NCCL on CUDA) while this process holds the
     run's lock: each rank runs `loop` (the training loop of splatzoo.run_launch, a module-level function: it
     travels to the ranks by name). Ctrl-C reaches every rank from the terminal; SIGTERM to this process is passed on.
@@ -37,7 +37,7 @@ def spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, res
     ctx = mp.start_processes(_rank_main, nprocs=cfg.nproc, join=False, start_method="spawn",
                              args=(cfg.nproc, str(rendezvous), beats, loop, str(run.path), scene, model,
                                    dataclasses.asdict(model_config), dataclasses.asdict(cfg), resume, progress,
-                                   evaluate_at_end, stop_after))
+                                   evaluate_at_end, stop_after, lpips_net))
     pids = [p.pid for p in ctx.processes]
     silent_after = float(os.environ.get("SPLATZOO_RANK_TIMEOUT", RANK_TIMEOUT_S))
     started = time.time()
@@ -119,7 +119,7 @@ def _beat(beats, rank: int) -> None:
 
 def _rank_main(rank: int, world: int, rendezvous: str, beats, loop, run_path: str, scene, model: str,
                model_config: dict, cfg: dict, resume: bool, progress: bool, evaluate_at_end: bool,
-               stop_after: int | None) -> None:
+               stop_after: int | None, lpips_net: str | None = None) -> None:
     """One rank of `spawn_ranks`: join the process group, train with `loop`, and exit with the shell's code for how
     it ended."""
     from datetime import timedelta
@@ -146,7 +146,8 @@ def _rank_main(rank: int, world: int, rendezvous: str, beats, loop, run_path: st
     try:
         run = Run(run_path)
         loop(run, scene, model, make_config(model, **model_config), cfg, run.checkpoint() if resume else None,
-             progress=progress, evaluate_at_end=evaluate_at_end, stop_after=stop_after, distributed=True)
+             progress=progress, evaluate_at_end=evaluate_at_end, stop_after=stop_after, lpips_net=lpips_net,
+             distributed=True)
     except TrainingInterrupted as e:
         if rank == 0:
             print(e, file=sys.stderr, flush=True)

@@ -121,6 +121,32 @@ def test_compare_never_reports_old_numbers(tiny_data, tmp_path):
     assert r.exit_code != 0 and "dataset" in str(r.exception)
 
 
+def test_compare_scores_lpips_with_the_network_asked_and_scores_a_finished_run_again_without_retraining(
+        tiny_data, tmp_path):
+    from splatzoo.evaluate import lpips_net_of
+
+    out, run = tmp_path / "cmp", tmp_path / "cmp" / "runs" / "2dgs"
+    base = ["compare", "2dgs", "--data", str(tiny_data), "--out", str(out), "--num-primitives", "50", "--backend",
+            "cpu", "--iterations", "4", "--store", "8bit"]
+    r = runner.invoke(app, base + ["--lpips-net", "alex"])
+    assert r.exit_code == 0, r.output
+    alex = json.loads((run / "metrics.json").read_text())
+    assert lpips_net_of(alex) == "alex"
+    assert json.loads((out / "compare.json").read_text())["settings"]["lpips_net"] == "alex"
+    assert "LPIPS v0.1 alex" in (out / "report.md").read_text()
+    trained = {p.name: p.read_bytes() for p in run.iterdir() if p.suffix in (".szp", ".pt", ".jsonl")}
+    r = runner.invoke(app, base)  # VGG, the default: the same run scored again
+    assert r.exit_code == 0, r.output
+    vgg = json.loads((run / "metrics.json").read_text())
+    assert lpips_net_of(vgg) == "vgg" and vgg["lpips"] != alex["lpips"]
+    assert {k: vgg[k] for k in ("psnr", "ssim", "float32_psnr", "stored_bytes")} == {
+        k: alex[k] for k in ("psnr", "ssim", "float32_psnr", "stored_bytes")}
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.suffix in (".szp", ".pt", ".jsonl")} == trained
+    other = [str(tmp_path / "other") if word == str(out) else word for word in base]
+    r = runner.invoke(app, other + ["--lpips-net", "squeeze"])  # refused before any training
+    assert r.exit_code != 0 and "vgg, alex" in str(r.exception) and not (tmp_path / "other").exists()
+
+
 def test_compare_names_runs_made_by_other_code(tiny_data, tmp_path):
     """A finished run whose recorded code fingerprint is not today's (the models, trainer, rasterizers or metrics
     changed since) is reused but named in the report and on stderr; --overwrite retrains it with today's code. A
