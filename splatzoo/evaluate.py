@@ -20,12 +20,10 @@ LPIPS_CONVENTION = "3dgs"  # the 2DGS/3DGS metrics script (and the paper's table
 
 def checked_lpips_net(net: str | None) -> str:
     """The LPIPS network a command scores with (None: LPIPS_NET), refused before any training if unknown."""
-    from .errors import UnknownNameError
-    from .metrics import LPIPS_NETS
+    from .metrics import check_lpips_net
 
     net = LPIPS_NET if net is None else net
-    if net not in LPIPS_NETS:
-        raise UnknownNameError(f"unknown LPIPS network {net!r}; choose one of {', '.join(LPIPS_NETS)}")
+    check_lpips_net(net)
     return net
 
 

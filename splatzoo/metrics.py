@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from .errors import ShapeError, SplatzooError, UnknownNameError
 
 __all__ = ["psnr", "ssim", "ssim_map", "ssim_torch", "dssim_loss", "lpips", "lpips_torch",
-           "LPIPS_NETS", "LPIPS_CONVENTIONS"]
+           "LPIPS_NETS", "LPIPS_CONVENTIONS", "check_lpips_net"]
 
 LPIPS_NETS = ("vgg", "alex")
 LPIPS_CONVENTIONS = ("3dgs", "standard")
@@ -363,9 +363,14 @@ def _get_net(net: str, device: torch.device) -> _LPIPSNet:
     return model
 
 
-def _check_lpips_args(net: str, convention: str) -> None:
+def check_lpips_net(net: str) -> None:
+    """Refuse an LPIPS network this module has no weights for."""
     if net not in LPIPS_NETS:
-        raise UnknownNameError(f"unknown LPIPS net {net!r}; choose one of {', '.join(LPIPS_NETS)}")
+        raise UnknownNameError(f"unknown LPIPS network {net!r}; choose one of {', '.join(LPIPS_NETS)}")
+
+
+def _check_lpips_args(net: str, convention: str) -> None:
+    check_lpips_net(net)
     if convention not in LPIPS_CONVENTIONS:
         raise UnknownNameError(f"unknown LPIPS convention {convention!r}; choose one of "
                                f"{', '.join(LPIPS_CONVENTIONS)} ('3dgs' feeds [0,1], 'standard' maps to [-1,1])")

@@ -21,20 +21,21 @@ def evaluate_run(run_dir, *, backend: str = "auto", lpips_net: str | None = None
     read, so it may be on read-only media); `scales` (each below 1) adds the metrics of smaller renders against
     area-averaged images (evaluate_scales) as its "scales" entry. skip_missing: leave out views whose image has gone
     missing (see load_scene)."""
-    from .evaluate import LPIPS_CONVENTION, LPIPS_NET, evaluate, evaluate_scales
+    from .evaluate import LPIPS_CONVENTION, checked_lpips_net, evaluate, evaluate_scales
 
+    lpips_net = checked_lpips_net(lpips_net)
     run = Run(run_dir)
     target = Path(out) if out is not None else run.metrics_path
     with run.writing("splatzoo eval", target, "--out FILE.json"):
         model, scene, record = run.load(backend, skip_missing=skip_missing)
         old = run.metrics() if run.metrics_path.exists() else None
         metrics = evaluate(model, scene, backend=backend, train_seconds=(old or {}).get("train_seconds"),
-                           iterations=record["train"].get("iterations"), lpips_net=lpips_net or LPIPS_NET,
+                           iterations=record["train"].get("iterations"), lpips_net=lpips_net,
                            lpips_convention=lpips_convention or LPIPS_CONVENTION)
         if old and old.get("float32_psnr") is not None:  # what storage cost: the same model, the same test views
             metrics["float32_psnr"] = old["float32_psnr"]
         if scales:
-            metrics["scales"] = evaluate_scales(model, scene, scales, backend=backend, lpips_net=lpips_net or LPIPS_NET,
+            metrics["scales"] = evaluate_scales(model, scene, scales, backend=backend, lpips_net=lpips_net,
                                                 lpips_convention=lpips_convention or LPIPS_CONVENTION)
         write_json(target, metrics)
     return metrics
@@ -90,13 +91,14 @@ def evaluate_file(path, data, *, backend: str = "auto", lpips_net: str | None = 
                   lpips_convention: str | None = None, scales=(), out=None, scene_options: dict | None = None) -> dict:
     """Evaluate the model file `path` (.ply or .pt) on the test views of the dataset `data`; the metrics are
     returned, and written to the JSON file `out` when given."""
-    from .evaluate import LPIPS_CONVENTION, LPIPS_NET, evaluate, evaluate_scales
+    from .evaluate import LPIPS_CONVENTION, checked_lpips_net, evaluate, evaluate_scales
 
+    lpips_net = checked_lpips_net(lpips_net)
     model, scene = _file_and_scene(path, data, backend, scene_options)
-    metrics = evaluate(model, scene, backend=backend, lpips_net=lpips_net or LPIPS_NET,
+    metrics = evaluate(model, scene, backend=backend, lpips_net=lpips_net,
                        lpips_convention=lpips_convention or LPIPS_CONVENTION)
     if scales:
-        metrics["scales"] = evaluate_scales(model, scene, scales, backend=backend, lpips_net=lpips_net or LPIPS_NET,
+        metrics["scales"] = evaluate_scales(model, scene, scales, backend=backend, lpips_net=lpips_net,
                                             lpips_convention=lpips_convention or LPIPS_CONVENTION)
     if out is not None:
         write_json(out, metrics)

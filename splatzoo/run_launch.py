@@ -128,7 +128,7 @@ def train(data, model: str | None = None, model_options: dict | None = None, con
     from .evaluate import checked_lpips_net
     from .training.distributed import launched_world
 
-    lpips_net = checked_lpips_net(lpips_net) if evaluate_at_end else lpips_net
+    lpips_net = checked_lpips_net(lpips_net)  # refused before the run folder is made
 
     if isinstance(config, TrainConfig):  # a value no run can use is refused before the run folder is made
         config.validate()
@@ -419,7 +419,7 @@ def _check_tensors(entries, what: str) -> None:
 
 
 def _train_loop(run: Run, scene, model: str, model_config, cfg: TrainConfig, state, *, progress: bool,
-                evaluate_at_end: bool, stop_after: int | None, lpips_net: str | None = None, distributed: bool = False,
+                evaluate_at_end: bool, stop_after: int | None, lpips_net: str, distributed: bool = False,
                 watch=None) -> TrainResult:
     """The loop around Trainer.step: logs, checkpoints (by iteration, by time, on SIGINT/SIGTERM), the final
     model and its evaluation. distributed: this process is one rank of torch.distributed's default process group;
@@ -511,11 +511,10 @@ def _trainer(run: Run, scene, model: str, model_config, cfg: TrainConfig, state,
 
 
 def _finish(run: Run, trainer: Trainer, scene, cfg: TrainConfig, backend: str, *, evaluate_at_end: bool,
-            lpips_net: str | None = None) -> TrainResult:
+            lpips_net: str) -> TrainResult:
     """The trained model written (model.szp at the run's --store precision, model.pt with the values it loads back
     as) and, with `evaluate_at_end`, evaluated on the test views (metrics.json, renders/; LPIPS with `lpips_net`,
-    None: evaluate.LPIPS_NET)."""
-    from .evaluate import LPIPS_NET
+    which train() has checked)."""
     from .zoo import save_model, stored_copy
 
     metrics = {}
@@ -531,7 +530,7 @@ def _finish(run: Run, trainer: Trainer, scene, cfg: TrainConfig, backend: str, *
             extra = ({"float32_psnr": test_psnr(trained, scene, backend, max_views=len(scene.test))}
                      if net is not trained and scene.test else {})
             metrics = {**_evaluate_into(run, net, scene, backend, train_seconds=trainer.train_seconds,
-                                        iterations=cfg.iterations, lpips_net=lpips_net or LPIPS_NET), **extra}
+                                        iterations=cfg.iterations, lpips_net=lpips_net), **extra}
             if extra:
                 run.write_metrics(metrics)
         except KeyboardInterrupt:
@@ -541,7 +540,7 @@ def _finish(run: Run, trainer: Trainer, scene, cfg: TrainConfig, backend: str, *
 
 
 def _train_launched(out: Run, world: int, data, model, model_options, config, scene_options, *, resume: bool,
-                    overwrite: bool, progress: bool, evaluate_at_end: bool, lpips_net: str | None,
+                    overwrite: bool, progress: bool, evaluate_at_end: bool, lpips_net: str,
                     stop_after: int | None,
                     command: str) -> TrainResult:
     """`train` in each of the processes a launcher (torchrun) started: rank 0 takes the run's lock, checks the

@@ -19,7 +19,7 @@ from .run_folder import Run, TrainingInterrupted, TrainResult
 from .training import TrainConfig
 
 def spawn_ranks(run: Run, scene, model: str, model_config, cfg: TrainConfig, resume: bool, *, loop, progress: bool,
-                evaluate_at_end: bool, stop_after: int | None, lpips_net: str | None = None) -> TrainResult:
+                evaluate_at_end: bool, stop_after: int | None, lpips_net: str) -> TrainResult:
     """Train on cfg.nproc processes (torch.distributed: gloo on CPU, NCCL on CUDA) while this process holds the
     run's lock: each rank runs `loop` (the training loop of splatzoo.run_launch, a module-level function: it
     travels to the ranks by name). Ctrl-C reaches every rank from the terminal; SIGTERM to this process is passed on.
@@ -119,7 +119,7 @@ def _beat(beats, rank: int) -> None:
 
 def _rank_main(rank: int, world: int, rendezvous: str, beats, loop, run_path: str, scene, model: str,
                model_config: dict, cfg: dict, resume: bool, progress: bool, evaluate_at_end: bool,
-               stop_after: int | None, lpips_net: str | None = None) -> None:
+               stop_after: int | None, lpips_net: str) -> None:
     """One rank of `spawn_ranks`: join the process group, train with `loop`, and exit with the shell's code for how
     it ended."""
     from datetime import timedelta

@@ -53,7 +53,7 @@ class TexturedConfig(Surfel2DConfig):
 
 class TexturedModel(Surfel2DModel):
     # its textures shed too; the plain surfels' larger start is not measured here
-    budget_start = SplatModel.__dict__["budget_start"]
+    budget_start = SplatModel.budget_start
 
     def __init__(self, config: TexturedConfig, num_primitives: int = 0):
         super().__init__(config, num_primitives)
