@@ -91,9 +91,14 @@ def plain_stored_bytes(name: str, count: int, precision: str, render_settings=No
 
 def plain_model(name: str, count: int, render_settings=None, **options) -> SplatModel:
     """Model `name` (with `options`, `render_settings`) of `count` primitives, with all it can shed under a byte
-    budget without losing primitives shed (SplatModel.shed_richness)."""
+    budget without losing primitives shed (SplatModel.shed_richness). Its values are drawn from -1, -0.5, 0, 0.5 and 1,
+    so that its file stores column ranges as a trained model's does at every count (packing: half floats at 8 bits,
+    which a model's starting values, far from zero against their spread, or two rows a hair apart, may not allow)."""
     g = torch.Generator().manual_seed(0)
     model = create_model(name, torch.rand(count, 3, generator=g), torch.full((count, 3), 0.5), **options)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.copy_(torch.randint(-2, 3, p.shape, generator=g).to(p.dtype) / 2)
     if render_settings is not None:
         model.set_render_settings(render_settings)
     return model.shed_richness()
