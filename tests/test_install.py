@@ -70,6 +70,9 @@ def test_the_system_python_gets_a_venv_in_the_checkout(dry_run):
     assert "torch==2.13.0" in lines[pip[0]] and "-e .[mesh,viewer,dev]" in lines[pip[1]]
     assert [f"[{i}/6]" for i in range(1, 7)] == [line.split()[0] for line in lines if line.startswith("[")]
     assert "source .venv/bin/activate" not in r.stdout  # a dry run makes nothing to activate
+    # the C++ rasterizer is built by the set-up, in the environment, not by the first render (or test)
+    assert any(line.split("would run: ")[-1].startswith(f"{venv}/bin/python -c from splatzoo.rasterizers import "
+                                                        "available_backends") for line in lines), r.stdout
 
 
 def test_an_interpreter_outside_any_environment_also_gets_the_venv(dry_run):
