@@ -21,8 +21,8 @@ The file: the 4 bytes `SZPK`, a little-endian uint32 header length, the header (
 version, model, config, precision, per tensor its name, dtype, encoding and shape, and render settings), then each
 tensor's bytes in the header's order. The header is compressed with a preset dictionary, the headers of the built-in
 models as they were when its version was made: a small budget's file spends on surfels what its header no longer
-takes. The zlib stream names its dictionary by checksum (RFC 1950's DICTID), and
-each dictionary is fixed for good, since every file written with it needs it:
+takes. The zlib stream names its dictionary by checksum (RFC 1950's DICTID), and each dictionary is fixed for good,
+since every file written with it needs it:
 
 - version 3 (`packed_header_dictionary_v3.jsonl`): each tensor's entry gives its columns (shape[1:]) and the
   header's `rows` list, last, the first dimension of each (null: a 0-d tensor), so all before it, which every file
@@ -64,8 +64,8 @@ F16_MAX = float(np.finfo(np.float16).max)
 # columns' minima and steps)
 _DTYPES = {"float32": np.float32, "float64": np.float64, "float16": np.float16, "int64": np.int64,
            "int32": np.int32, "int16": np.int16, "uint8": np.uint8, "bool": np.bool_}
+# (u16 never has half-float ranges: its steps are finer than a half float resolves)
 _CODES = {"u8": (np.uint8, 8, "<f4"), "u16": (np.uint16, 16, "<f4"), "u8h": (np.uint8, 8, "<f2")}
-_HALF_RANGES = {"u8": "u8h"}  # the codes whose ranges may be half floats (16-bit steps are below a half's precision)
 _FIX = "pass a .szp file written by splatzoo (save_model or a run trained with --store)"
 
 
@@ -168,7 +168,7 @@ def _encode_fixed(array: np.ndarray, encoding: str):
     """(minimum [C], step [C], codes) of each column over its own range, the ranges in the encoding's dtype."""
     code_type, bits, range_type = _CODES[encoding]
     x = _columns(array.astype(np.float64))
-    lo, step = _half_ranges(array, bits) if encoding in _HALF_RANGES.values() else _ranges(x, bits, np.float32)
+    lo, step = _half_ranges(array, bits) if range_type == "<f2" else _ranges(x, bits, np.float32)
     lo = lo.astype(range_type)
     step = step.astype(range_type)
     levels = (1 << bits) - 1
