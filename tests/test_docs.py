@@ -39,12 +39,14 @@ def test_models_verbose_states_shared_options_once():
     lines = [line for rows in sections.values() for line in rows]
     assert len(lines) == len(set(lines)), "an option is printed twice with the same meaning"
     # the wave models' common options come once, under one header naming them all
-    waves = next(names for names, rows in sections.items() if any(r.startswith("--wave-l1 ") for r in rows))
+    waves = next(names for names, rows in sections.items() if any(r.startswith("--wave-l1-per-count ") for r in rows))
     assert {"gabor", "gabor-adaptive", "beta-gabor", "baseline-a", "baseline-b", "baseline-c"} <= set(waves)
-    assert sum(line.startswith("--wave-l1 ") for line in lines) == 1
-    # an option whose default differs (beta-gabor's per-wave colours) is stated apart, under its own model
-    colour = [names for names, rows in sections.items() if any(r.startswith("--color-param ") for r in rows)]
-    assert len(colour) == 2 and ("beta-gabor",) in colour
+    assert sum(line.startswith("--wave-l1-per-count ") for line in lines) == 1
+    # an option whose default differs (beta-gabor's per-wave colours, its twice-as-strong wave penalty) is stated
+    # apart, under its own model
+    for option in ("--color-param ", "--wave-l1 "):
+        blocks = [names for names, rows in sections.items() if any(r.startswith(option) for r in rows)]
+        assert len(blocks) == 2 and ("beta-gabor",) in blocks, option
     # and nothing is lost: every model's options are its own block plus the shared blocks that name it
     for entry in MODELS.entries():
         if entry.broken:

@@ -9,8 +9,9 @@ wave of the fixed fan with a colour difference shared by the surfel stores 3, pl
 "Waves with a colour each"). The wave vectors and phases learn at ten times gabor's rate (wave_lr), so that a
 short run reaches stripes several cycles a sigma from where they start ("Waves that learn ten times faster"), and at
 30% of the run every surfel's waves are fitted to the stripes the training photos show on its plane (fit_waves,
-training/wave_fit.py; "Waves fitted to the photos"). Under a byte budget (TrainConfig.max_bytes, `compare
---budgets`) it sheds, by measured cost, waves or its weakest surfels until it fits (training/budget.py).
+training/wave_fit.py; "Waves fitted to the photos"). Its sparse-wave penalty is twice gabor's (wave_l1). Under a
+byte budget (TrainConfig.max_bytes, `compare --budgets`) it sheds, by measured cost, waves or its weakest surfels
+until it fits (training/budget.py).
 """
 from __future__ import annotations
 
@@ -19,7 +20,12 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from .beta import BetaFalloff
+from .gabor import WAVE_L1 as GABOR_WAVE_L1
 from .gabor import AdaptiveGaborConfig, GaborModel
+
+# the sparse-wave penalty: twice gabor's. On the quick sweater, three seeds, it gave +0.30 dB at 5% of 2dgs's bytes,
+# -0.07 at 25% and at 100% (BENCHMARKS.md, "Packed files version 3, and a sparser beta-gabor")
+WAVE_L1 = 2 * GABOR_WAVE_L1
 
 
 @dataclass
@@ -34,6 +40,9 @@ class BetaGaborConfig(AdaptiveGaborConfig):
         "help": "learning rate of the waves' vectors and phases (Adam; about the most one moves a step: cycles per "
                 "sigma, radians): 10x gabor's, so that in a short run a wave reaches stripes several cycles a sigma "
                 "from its start in [0, 1) and any phase (BENCHMARKS.md, \"Waves that learn ten times faster\")"})
+    wave_l1: float = field(default=WAVE_L1, metadata={
+        "help": "L1 penalty on the waves' amplitudes (see gabor's --wave-l1): twice gabor's, worth +0.3 dB on the "
+                "test views at 5% of 2dgs's bytes (BENCHMARKS.md, \"Packed files version 3, and a sparser beta-gabor\")"})
     fit_waves: float = field(default=0.3, metadata={
         "help": "fraction of the run after which every surfel's waves are replaced by the stripes the training "
                 "photos show on its plane (training/wave_fit.py; the geometry has settled by then), 0: never"})
