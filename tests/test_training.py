@@ -260,6 +260,10 @@ def test_wave_l1_pulls_unneeded_waves_to_zero(tiny_data):
     assert create_model("gabor", pts, cols, color_param="paper").regulariser() is None
     with pytest.raises(SplatzooError, match="residual only"):
         make_config("gabor", color_param="paper", wave_l1=1e-3)
+    # a model's own default penalty (beta-gabor's is twice gabor's) is simply unused in the paper's colours
+    assert make_config("beta-gabor", color_param="paper", fit_waves=0).wave_l1 == 2 * WAVE_L1
+    with pytest.raises(SplatzooError, match="residual only"):
+        make_config("beta-gabor", color_param="paper", fit_waves=0, wave_l1=WAVE_L1)
     assert create_model("2dgs", pts, cols).regulariser() is None
     net = create_model("gabor", pts, cols, wave_l1=1e-3, wave_l1_per_count=False)
     penalty = net.regulariser()
