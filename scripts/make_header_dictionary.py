@@ -1,11 +1,11 @@
 """Write the preset dictionary of the packed-file headers of the current format version (splatzoo/packing.py).
 
 The dictionary holds the headers of the built-in models at their default options, each of 10 primitives with values
-that vary as trained ones do, with the render settings a training run records, at the reduced precisions, as
-created and with what a byte budget sheds shed (no waves). A header without render settings finds its parts in them. The headers a small budget writes most (8-bit
-beta-gabor and 2dgs) come last, where deflate's distances are shortest. A dictionary is fixed for good once files are
-written with it (they name it by checksum), so this refuses to replace one that exists: a new dictionary comes with
-a new format version.
+that vary as trained ones do, with the render settings a training run records, at the reduced precisions, as created
+and with what a byte budget sheds shed (no waves). A header without render settings finds its parts in them. The
+headers a small budget writes most (8-bit beta-gabor and 2dgs) come last, where deflate's distances are shortest. A
+dictionary is fixed for good once files are written with it (they name it by checksum), so this refuses to replace
+one that exists: a new dictionary comes with a new format version.
 
     python scripts/make_header_dictionary.py
 """

@@ -17,8 +17,8 @@ from splatzoo.cli import app
 from splatzoo.compare import ModelChoice, budget_count, parse_budgets, stored_cost
 from splatzoo.errors import SplatzooError
 from splatzoo import packing
-from splatzoo.packing import (PRECISIONS, encoding_for, header_dictionary, pack_checkpoint, quantise_tensor, read_header,
-                              unpack_checkpoint)
+from splatzoo.packing import (PRECISIONS, encoding_for, header_dictionary, pack_checkpoint, quantise_tensor,
+                              read_header, unpack_checkpoint)
 from splatzoo.registry import MODELS
 from splatzoo.zoo import make_config, stored_bytes, stored_copy, stored_values
 

@@ -42,7 +42,8 @@ class BetaGaborConfig(AdaptiveGaborConfig):
                 "from its start in [0, 1) and any phase (BENCHMARKS.md, \"Waves that learn ten times faster\")"})
     wave_l1: float = field(default=WAVE_L1, metadata={
         "help": "L1 penalty on the waves' amplitudes (see gabor's --wave-l1): twice gabor's, worth +0.3 dB on the "
-                "test views at 5% of 2dgs's bytes (BENCHMARKS.md, \"Packed files version 3, and a sparser beta-gabor\")"})
+                "test views at 5% of 2dgs's bytes (BENCHMARKS.md, \"Packed files version 3, and a sparser "
+                "beta-gabor\")"})
     fit_waves: float = field(default=0.3, metadata={
         "help": "fraction of the run after which every surfel's waves are replaced by the stripes the training "
                 "photos show on its plane (training/wave_fit.py; the geometry has settled by then), 0: never"})

@@ -158,7 +158,8 @@ class GaborConfig:
             raise ShapeError(f"color_param must be {', '.join(COLOR_PARAMS)}, got {self.color_param!r}")
         if self.init not in ("surfel", "paper"):
             raise ShapeError(f"init must be surfel or paper, got {self.init!r}")
-        # the model's own default (beta-gabor's is twice gabor's) is nobody's request: the paper's colours leave it unused
+        # the model's own default (beta-gabor's is twice gabor's) is nobody's request: the paper's colours
+        # leave it unused
         own_default = next(f.default for f in dataclasses.fields(self) if f.name == "wave_l1")
         if self.color_param == "paper" and float(self.wave_l1) not in (0.0, own_default):
             raise ShapeError("wave_l1 applies to color_param=residual only: in the paper's form the wave weights carry "
